@@ -1,0 +1,183 @@
+"""Validate a UMI replay buffer (zarr root with ``data/`` and ``meta/episode_ends``).
+
+Each malformed case raises one :class:`~umi_aug.errors.DatasetError` naming the file and the key;
+harmless deviations from UMI's layout (chunks, dtypes) become warnings in the report.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zarr
+
+from umi_aug.data import schema
+from umi_aug.data.codecs import register_codecs
+from umi_aug.data.store import close_store, open_store
+from umi_aug.errors import DatasetError
+
+_REPAIR_HINT = ("extra trailing data beyond episode_ends[-1] (an interrupted append?); open it with "
+                "ReplayBuffer.open(path, mode='a', repair=True) to truncate it back to the last complete episode")
+
+
+@dataclass(frozen=True)
+class ArrayInfo:
+    """Layout of one ``data/*`` array: shape, dtype string, chunks and compressor codec id (None = raw)."""
+
+    shape: tuple[int, ...]
+    dtype: str
+    chunks: tuple[int, ...]
+    compressor: str | None
+
+
+@dataclass
+class ValidationReport:
+    """Result of :func:`validate_replay_buffer`: episode/step counts, per-key layout, warnings."""
+
+    n_episodes: int
+    n_steps: int
+    keys: dict[str, ArrayInfo] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+
+def _codec_ids(group: zarr.Group, key: str) -> str:
+    """Codec ids named in ``<group>/<key>/.zarray`` (compressor and filters), read without numcodecs."""
+    prefix = f"{group.path}/" if group.path else ""
+    try:
+        meta = json.loads(group.store[f"{prefix}{key}/.zarray"])
+    except Exception:  # noqa: BLE001 - best effort, only for the message
+        return "?"
+    ids = [c.get("id") for c in [meta.get("compressor")] + list(meta.get("filters") or []) if c]
+    return ", ".join(repr(i) for i in ids) or "none"
+
+
+def open_array(group: zarr.Group, key: str, name: str) -> zarr.Array:
+    """``group[key]``, turning numcodecs' unknown-codec error into a DatasetError naming key and codec."""
+    where = f"{group.path}/{key}" if group.path else key
+    try:
+        return group[key]
+    except Exception as exc:  # numcodecs UnknownCodecError (a ValueError), bad metadata, ...
+        ids = _codec_ids(group, key)
+        raise DatasetError(
+            f"{name}: key '{where}' cannot be opened: codec {ids} is not available ({type(exc).__name__}: "
+            f"{exc}). Install and register it with numcodecs (for 'imagecodecs_jpegxl' call "
+            "umi_aug.data.register_codecs(); other imagecodecs_* ids need the imagecodecs package and "
+            "imagecodecs.numcodecs.register_codecs())"
+        ) from exc
+
+
+def check_episode_ends(ends: np.ndarray, name: str) -> None:
+    """Raise unless ``ends`` (E,) is 1-D integer, strictly increasing with a positive first entry."""
+    where = f"{name}: key 'meta/{schema.EPISODE_ENDS}'"
+    if ends.ndim != 1 or not np.issubdtype(ends.dtype, np.integer):
+        raise DatasetError(f"{where} must be a 1-D integer array (UMI: int64, shape (E,)), got "
+                           f"shape {ends.shape} dtype {ends.dtype}")
+    if ends.size and ends[0] <= 0:
+        raise DatasetError(f"{where}: first episode end must be > 0, got {int(ends[0])}")
+    bad = np.flatnonzero(np.diff(ends) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise DatasetError(f"{where} must be strictly increasing: episode_ends[{i}] = {int(ends[i])} <= "
+                           f"episode_ends[{i - 1}] = {int(ends[i - 1])}")
+
+
+def first_nonfinite_row(values: np.ndarray) -> int | None:
+    """Index of the first row (along axis 0) holding NaN/Inf, or None (non-float arrays: None)."""
+    if not np.issubdtype(values.dtype, np.floating) or values.shape[0] == 0:
+        return None
+    ok = np.isfinite(values.reshape(values.shape[0], -1)).all(axis=1)
+    return None if ok.all() else int(np.argmin(ok))
+
+
+def _check_data_array(key: str, arr: zarr.Array, n_steps: int, name: str, check_values: bool,
+                      warnings: list[str]) -> None:
+    where = f"{name}: key 'data/{key}'"
+    if arr.ndim == 0 or arr.shape[0] != n_steps:
+        length = arr.shape[0] if arr.ndim else "scalar"
+        longer = arr.ndim and arr.shape[0] > n_steps
+        hint = _REPAIR_HINT if longer else "missing rows: the buffer is truncated or corrupt"
+        raise DatasetError(f"{where} has length {length} but episode_ends[-1] = {n_steps}: {hint}")
+    if schema.is_image_key(key):
+        if arr.ndim != 4 or arr.shape[-1] != 3:
+            raise DatasetError(f"{where} must have shape (N, H, W, 3) (RGB images), got {arr.shape}")
+        if arr.dtype != np.uint8:
+            raise DatasetError(f"{where} must have dtype uint8, got {arr.dtype}")
+        if tuple(arr.chunks) != (1,) + tuple(arr.shape[1:]):
+            warnings.append(f"{where}: chunks {arr.chunks} differ from UMI's one-frame chunks "
+                            f"{(1,) + tuple(arr.shape[1:])}")
+        return
+    step_shape = schema.pose_key_shape(key)
+    if step_shape is None:
+        return
+    if tuple(arr.shape[1:]) != step_shape:
+        raise DatasetError(f"{where} must have shape (N, {', '.join(map(str, step_shape))}), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.floating):
+        warnings.append(f"{where}: dtype {arr.dtype} is not floating point (UMI writes float32/float64)")
+    if check_values:
+        row = first_nonfinite_row(arr[:])
+        if row is not None:
+            raise DatasetError(f"{where} holds NaN/Inf, first at row {row}: {arr[row].tolist()}")
+
+
+def _validate_root(root: zarr.Group, name: str, check_values: bool) -> ValidationReport:
+    groups = set(root.group_keys())
+    for g in (schema.DATA_GROUP, schema.META_GROUP):
+        if g not in groups:
+            raise DatasetError(f"{name}: missing group '{g}/' (a UMI replay buffer has data/ and meta/ groups)")
+    meta, data = root[schema.META_GROUP], root[schema.DATA_GROUP]
+    if schema.EPISODE_ENDS not in set(meta.array_keys()):
+        raise DatasetError(f"{name}: missing key 'meta/{schema.EPISODE_ENDS}' (int64 (E,) episode end indices)")
+    ends = open_array(meta, schema.EPISODE_ENDS, name)[:]
+    check_episode_ends(ends, name)
+    warnings: list[str] = []
+    if ends.dtype != np.int64:
+        warnings.append(f"{name}: key 'meta/{schema.EPISODE_ENDS}' has dtype {ends.dtype}, UMI writes int64")
+    n_steps = int(ends[-1]) if ends.size else 0
+    if not ends.size:
+        warnings.append(f"{name}: no episodes (meta/{schema.EPISODE_ENDS} is empty)")
+    for sub in sorted(data.group_keys()):
+        warnings.append(f"{name}: 'data/{sub}' is a group; UMI expects only arrays in data/")
+    report = ValidationReport(n_episodes=int(ends.size), n_steps=n_steps, warnings=warnings)
+    for key in sorted(data.array_keys()):
+        arr = open_array(data, key, name)
+        _check_data_array(key, arr, n_steps, name, check_values, warnings)
+        report.keys[key] = ArrayInfo(tuple(arr.shape), str(arr.dtype), tuple(arr.chunks),
+                                     arr.compressor.codec_id if arr.compressor is not None else None)
+    return report
+
+
+def validate_replay_buffer(root_or_path: zarr.Group | str | os.PathLike | Any,
+                           name_for_messages: str | None = None,
+                           check_values: bool = True) -> ValidationReport:
+    """Check a UMI replay buffer and describe it.
+
+    Args:
+        root_or_path: a zarr root group, a :class:`ReplayBuffer` (its ``root``), or the path of a zarr
+            directory / ``.zarr.zip`` (opened read-only, lazily, and closed again).
+        name_for_messages: what error messages call the buffer (default: the path, or ``<in-memory>``).
+        check_values: also read the pose/gripper arrays and reject NaN/Inf (images are never decoded).
+
+    Returns:
+        ValidationReport with ``n_episodes``, ``n_steps`` (= ``episode_ends[-1]``), per-key layout and
+        warnings for harmless deviations from UMI's layout.
+
+    Raises:
+        DatasetError: one per malformed case (missing groups/keys, bad episode_ends, length mismatch,
+            bad image/pose shapes or dtypes, NaN/Inf in pose arrays, unknown codec, unreadable path).
+    """
+    register_codecs()
+    if isinstance(root_or_path, (str, os.PathLike)):
+        name = name_for_messages or str(root_or_path)
+        store, root = open_store(root_or_path, mode="r")
+        try:
+            return _validate_root(root, name, check_values)
+        finally:
+            close_store(store)
+    root = getattr(root_or_path, "root", root_or_path)
+    if not isinstance(root, zarr.Group):
+        raise DatasetError(f"validate_replay_buffer: expected a zarr.Group, ReplayBuffer or path, got "
+                           f"{type(root_or_path).__name__}")
+    return _validate_root(root, name_for_messages or "<in-memory replay buffer>", check_values)
