@@ -1,7 +1,8 @@
-"""Command line: ``umi-aug demo | validate | intrinsics``.
+"""Command line: ``umi-aug demo | make-session | validate | intrinsics``.
 
 ``umi-aug demo`` runs every stage that exists end to end on the built-in default scene and says which stages
 are not available yet. ``umi-aug validate PATH`` checks a UMI replay buffer (directory or ``.zarr.zip``).
+``umi-aug make-session --out DIR`` renders a synthetic UMI session of the built-in MuJoCo scene.
 ``umi-aug intrinsics FILE`` prints a calibration (UMI/OpenICC JSON or ORB-SLAM3 yaml) and its 224² policy view.
 """
 
@@ -20,28 +21,28 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from umi_aug.demo.foundation import DemoConfig, run_demo
+    from umi_aug.demo.pipeline import DemoConfig, run_demo
 
     console = Console()
-    cfg = DemoConfig(out_dir=Path(args.out), seed=args.seed, n_episodes=args.episodes, n_frames=args.frames)
-    console.print(f"[bold]umi-aug demo[/bold] on the built-in analytic room → {cfg.out_dir}/")
+    cfg = DemoConfig(out_dir=Path(args.out), seed=args.seed, n_episodes=args.episodes, scan_frames=args.scan_frames)
+    console.print(f"[bold]umi-aug demo[/bold] on the built-in MuJoCo tabletop scene (seed {cfg.seed}) → {cfg.out_dir}/")
     summary = run_demo(cfg)
 
     t = Table(title="what ran")
     t.add_column("item")
     t.add_column("value")
-    intr = summary["intrinsics_224"]
-    t.add_row("policy camera", f"{intr['width']}×{intr['height']} fx={intr['fx']:.2f} cx={intr['cx']:.2f} cy={intr['cy']:.2f}")
-    t.add_row(
-        "lens",
-        f"KB model valid to θ = {summary['fold_over_deg']:.1f}° (fold-over); the {intr['width']}² crop sees rays up to "
-        f"{summary['max_theta_seen_deg']:.1f}°, {100 * summary['fraction_pixels_in_image_circle']:.1f}% of pixels in the image circle",
-    )
-    t.add_row("cube faces rendered", f"{', '.join(summary['cube_faces_rendered'])} ({summary['cube_face_size']}² px)")
-    t.add_row("episodes", f"{summary['episodes']} × {summary['frames_per_episode']} frames")
-    t.add_row("start rotations vs reference", ", ".join(f"{a:.0f}°" for a in summary["start_rotation_from_reference_deg"]))
-    t.add_row("dataset", f"{summary['dataset']} ({summary['dataset_steps']} steps, validated, read back; "
-              f"JPEG-XL mean abs error {summary['jpegxl_mean_abs_error']:.2f}/255)")
+    ri, pi = summary["render_intrinsics"], summary["policy_intrinsics"]
+    t.add_row("synthetic session", f"{summary['session']} ({summary['session_frames']} frames: scan + demo {summary['demo']})")
+    t.add_row("camera", f"render {ri['width']}×{ri['height']} f={ri['fx']:.2f}; policy {pi['width']}² f={pi['fx']:.2f} "
+              f"cx={pi['cx']:.2f} cy={pi['cy']:.2f}")
+    t.add_row("lens", f"KB model valid to θ = {summary['fold_over_deg']:.1f}° (fold-over); rays up to "
+              f"{summary['max_theta_seen_deg']:.1f}° rendered; cube faces {', '.join(summary['cube_faces_rendered'])} "
+              f"({summary['cube_face_size']}² px)")
+    t.add_row("new episodes", f"{summary['new_episodes']}: new approach for frames 0..{summary['splice_index']} "
+              f"(pre-grasp), original motion after (contact at {summary['contact_index']})")
+    t.add_row("start rotations vs demo start", ", ".join(f"{a:.0f}°" for a in summary["start_rotation_from_demo_start_deg"]))
+    t.add_row("dataset", f"{summary['dataset']} ({summary['dataset_episodes']} episodes, {summary['dataset_steps']} "
+              "steps; validated)")
     for k, v in summary["timings"].items():
         t.add_row(k, f"{v:.3f}")
     console.print(t)
@@ -55,9 +56,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         s.add_row(row["stage"], f"[{colour}]{row['status']}[/{colour}]", row["what"])
     console.print(s)
     console.print(
-        "Paths are straight-line initial guesses (trajectory optimisation is not available yet) and frames come "
-        "from the analytic room (the 3DGS renderer is not available yet).\n"
-        f"Pictures: {cfg.out_dir}/lens.png, cone.png, contact_sheet.png; summary: {cfg.out_dir}/summary.json"
+        "New camera paths are straight-line initial guesses (trajectory optimisation is not wired in yet) and new "
+        "frames come from the simulator's ground-truth scene (the 3DGS renderer is not wired in yet).\n"
+        f"Pictures: {cfg.out_dir}/contact_sheet.png, cone.png, lens.png, session/contact_sheet.png; "
+        f"summary: {cfg.out_dir}/summary.json"
     )
     return 0
 
@@ -96,8 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="run all available stages end to end on the built-in default scene")
     d.add_argument("--out", default="umi_aug_demo", help="output folder (default: ./umi_aug_demo)")
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--episodes", type=int, default=6, help="generated episodes")
-    d.add_argument("--frames", type=int, default=30, help="frames per episode")
+    d.add_argument("--episodes", type=int, default=4, help="new episodes generated from the demo")
+    d.add_argument("--scan-frames", type=int, default=120, help="frames of the synthetic mapping scan")
     d.set_defaults(func=_cmd_demo)
 
     v = sub.add_parser("validate", help="validate a UMI replay buffer (directory or .zarr.zip)")
@@ -108,6 +110,10 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("path")
     i.add_argument("--size", type=int, default=224, help="policy image size")
     i.set_defaults(func=_cmd_intrinsics)
+
+    from umi_aug.sim.cli import add_make_session_parser  # imports neither MuJoCo nor OpenGL
+
+    add_make_session_parser(sub)
     return p
 
 

@@ -14,27 +14,32 @@ from umi_aug.cli import main
 @pytest.mark.slow
 def test_demo_runs_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--episodes", "2", "--frames", "5"]) == 0
-    for name in ("dataset.zarr.zip", "camera_trajectory.csv", "intrinsics_224.json", "lens.png", "cone.png", "contact_sheet.png", "summary.json"):
+    assert main(["demo", "--out", str(out), "--episodes", "2", "--scan-frames", "8"]) == 0
+    for name in ("dataset.zarr.zip", "cone.png", "contact_sheet.png", "lens.png", "summary.json",
+                 "session/session.json", "session/dataset.zarr.zip", "session/contact_sheet.png"):
         assert (out / name).is_file(), name
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["dataset_steps"] == 10
+    assert summary["dataset_episodes"] == 3  # the original + 2 new
     assert "back" not in summary["cube_faces_rendered"] and len(summary["cube_faces_rendered"]) == 5
     stages = {s["stage"]: s["status"] for s in summary["stages"]}
-    assert stages["geometry"] == stages["camera"] == stages["data"] == "ran"
-    assert stages["traj"] == "not yet available"
+    assert stages["geometry"] == stages["camera"] == stages["data"] == stages["sim"] == "ran"
+    assert stages["augment"] == "not yet available"
     printed = capsys.readouterr().out
     assert "not yet available" in printed  # honest about missing stages while they are missing
 
     from umi_aug.data import ReplayBuffer
 
     buf = ReplayBuffer.open(out / "dataset.zarr.zip")
-    ep = buf.get_episode(1)
-    assert ep["camera0_rgb"].shape == (5, 224, 224, 3)
-    # The generated frames are not blank: the fisheye sees the textured room; the gripper mask is black.
-    assert ep["camera0_rgb"].std() > 10
-    assert (ep["camera0_rgb"][:, -1, 0] == 0).all()
-    assert np.isfinite(ep["robot0_eef_pos"]).all()
+    orig, new = buf.get_episode(0), buf.get_episode(1)
+    g = summary["splice_index"]
+    assert new["camera0_rgb"].shape == orig["camera0_rgb"].shape and new["camera0_rgb"].shape[1:] == (224, 224, 3)
+    # after the splice the new episode replays the original motion and frames exactly
+    np.testing.assert_array_equal(new["robot0_eef_pos"][g + 1 :], orig["robot0_eef_pos"][g + 1 :])
+    np.testing.assert_array_equal(new["camera0_rgb"][g + 1 :], orig["camera0_rgb"][g + 1 :])
+    # before it the approach is new: a different start pose and different (not blank) images
+    assert np.linalg.norm(new["robot0_eef_pos"][0] - orig["robot0_eef_pos"][0]) > 0.01
+    assert new["camera0_rgb"][0].std() > 10
+    np.testing.assert_allclose(new["robot0_eef_pos"][g], orig["robot0_eef_pos"][g], atol=1e-6)
     assert main(["validate", str(out / "dataset.zarr.zip")]) == 0
 
 

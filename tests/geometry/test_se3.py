@@ -53,7 +53,12 @@ def test_pose6_round_trip(rng, angle):
 
 
 def test_pose6_float32_input(rng):
-    pose6 = rng.normal(size=(4, 6)).astype(np.float32)
+    pose6 = rng.normal(size=(4, 6))
+    # rotation vectors with angle < pi: so3_log returns the angle in [0, pi], so larger angles come back as
+    # the equivalent vector (2*pi - angle about the opposite axis)
+    axis = pose6[:, 3:] / np.linalg.norm(pose6[:, 3:], axis=-1, keepdims=True)
+    pose6[:, 3:] = axis * rng.uniform(0.0, np.pi - 1e-3, size=(4, 1))
+    pose6 = pose6.astype(np.float32)
     T = pos_rotvec_to_pose(pose6)
     assert T.dtype == np.float64
     np.testing.assert_allclose(pose_to_pos_rotvec(T), pose6.astype(np.float64), atol=1e-12)

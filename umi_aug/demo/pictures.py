@@ -1,4 +1,4 @@
-"""Pictures the foundation demo writes: lens geometry, sampled start-pose cone, fisheye contact sheet.
+"""Pictures the demo writes: lens geometry, sampled start-pose cone, contact sheet of original and new episodes.
 
 All figures are PNG files written atomically (temporary file, then rename). matplotlib runs headless (Agg).
 """
@@ -29,11 +29,14 @@ def _save(fig, path: Path) -> Path:
     return Path(path)
 
 
-def lens_figure(intr, remapper, path: Path) -> Path:
+def lens_figure(intr, path: Path) -> Path:
     """Three panels: ray angle θ per pixel (with 90° and image-circle contours and UMI's gripper mask),
     the Kannala–Brandt curve θ_d(θ) with its fold-over, and which cube face feeds each pixel."""
+    from umi_aug.camera.cubemap import CubemapFisheyeRemap
     from umi_aug.camera.kb import kb_theta_d, unproject
     from umi_aug.camera.masks import predefined_mask
+
+    remapper = CubemapFisheyeRemap(intr)
 
     plt = _pyplot()
     h, w = intr.height, intr.width
@@ -79,6 +82,7 @@ def cone_figure(
     paths: np.ndarray,  # [N, T, 4, 4]
     path: Path,
     axis_len: float = 0.08,
+    demo_path: np.ndarray | None = None,  # [T, 4, 4] original demo camera poses
 ) -> Path:
     """3-D view of the sampled start poses (optical axes as arrows), the reference and goal views and the
     straight-line camera paths."""
@@ -89,13 +93,16 @@ def cone_figure(
     z = starts[:, :3, 2]
     ax.scatter(*p.T, c="tab:blue", s=18, label="sampled starts")
     ax.quiver(*p.T, *(axis_len * z).T, color="tab:blue", lw=0.8)
-    for traj in paths:
-        ax.plot(*traj[:, :3, 3].T, color="tab:gray", lw=0.7)
-    for T, c, name in ((T_world_ref, "tab:green", "reference start"), (T_world_goal, "tab:red", "pre-contact goal")):
+    for i, traj in enumerate(paths):
+        ax.plot(*traj[:, :3, 3].T, color="tab:gray", lw=0.7, label="new camera paths" if i == 0 else None)
+    if demo_path is not None:
+        ax.plot(*demo_path[:, :3, 3].T, color="tab:green", lw=1.5, label="original demo")
+    for T, c, name in ((T_world_ref, "tab:green", "demo start"), (T_world_goal, "tab:red", "splice (pre-grasp) pose")):
         ax.scatter(*T[:3, 3], c=c, s=40, label=name)
         ax.quiver(*T[:3, 3], *(axis_len * T[:3, 2]), color=c, lw=1.5)
-    ax.scatter(*pivot, c="k", marker="x", s=50, label="cone pivot")
-    pts = np.concatenate([p, paths[..., :3, 3].reshape(-1, 3), pivot[None], T_world_ref[None, :3, 3]])
+    ax.scatter(*pivot, c="k", marker="x", s=50, label="cone pivot (grasp point)")
+    pts = np.concatenate([p, paths[..., :3, 3].reshape(-1, 3), pivot[None], T_world_ref[None, :3, 3]]
+                         + ([demo_path[:, :3, 3]] if demo_path is not None else []))
     span = np.ptp(pts, axis=0).max() / 2 + axis_len
     mid = (pts.max(axis=0) + pts.min(axis=0)) / 2
     ax.set_xlim(mid[0] - span, mid[0] + span)
@@ -113,29 +120,26 @@ def cone_figure(
 def contact_sheet(
     frames: np.ndarray,  # [E, T, H, W, 3] uint8
     path: Path,
-    n_cols: int = 6,
-    depth0: np.ndarray | None = None,  # [H, W] ray depth of frame (0, 0), metres
+    n_cols: int = 7,
+    splice_index: int | None = None,
+    row_names: list[str] | None = None,
 ) -> Path:
-    """Grid of fisheye frames: one row per episode, ``n_cols`` frames evenly spaced in time (plus the ray
-    depth of the first frame when given)."""
+    """Grid of fisheye frames: one row per episode, ``n_cols`` frames evenly spaced in time up to and
+    including ``splice_index`` (frames after it are the original ones), then the last frame."""
     plt = _pyplot()
     n_ep, n_t = frames.shape[:2]
-    cols = np.linspace(0, n_t - 1, min(n_cols, n_t)).round().astype(int)
-    extra = 1 if depth0 is not None else 0
-    fig, axes = plt.subplots(n_ep, len(cols) + extra, figsize=(1.9 * (len(cols) + extra), 1.9 * n_ep), squeeze=False)
+    last_new = n_t - 1 if splice_index is None else splice_index
+    cols = list(np.linspace(0, last_new, min(n_cols - 1, last_new + 1)).round().astype(int)) + [n_t - 1]
+    fig, axes = plt.subplots(n_ep, len(cols), figsize=(1.9 * len(cols), 1.9 * n_ep), squeeze=False)
     for e in range(n_ep):
         for j, k in enumerate(cols):
             axes[e, j].imshow(frames[e, k])
             axes[e, j].set_xticks([])
             axes[e, j].set_yticks([])
             if e == 0:
-                axes[e, j].set_title(f"t={k}", fontsize=8)
-        axes[e, 0].set_ylabel(f"ep {e}", fontsize=8)
-        if extra:
-            a = axes[e, -1]
-            if e == 0:
-                a.imshow(np.where(depth0 > 0, depth0, np.nan), cmap="magma")
-                a.set_title("ray depth [m]", fontsize=8)
-            a.axis("off")
-    fig.suptitle("fisheye frames rendered along straight-line paths from cone-sampled starts", fontsize=9)
+                tag = " (splice)" if k == splice_index else (" (end)" if k == n_t - 1 else "")
+                axes[e, j].set_title(f"t={k}{tag}", fontsize=8)
+        axes[e, 0].set_ylabel(row_names[e] if row_names else f"ep {e}", fontsize=8)
+    fig.suptitle("policy images (224², UMI layout): original demo and new episodes from cone-sampled starts",
+                 fontsize=9)
     return _save(fig, path)
