@@ -1,0 +1,151 @@
+import numpy as np
+import pytest
+import torch
+
+from tests.policy.helpers import SIZE, make_dataset, tiny_config
+from umi_aug.data import ReplayBuffer
+from umi_aug.errors import PolicyError
+from umi_aug.geometry import pos_rotvec_to_pose, relative_pose
+from umi_aug.policy.dataset import UmiPolicyDataset, get_val_mask, sample_frame_indices
+
+
+def _umi_sampler_reference(ends, horizon_a, ds, h_obs):
+    """UMI's SequenceSampler index logic written out literally (action_padding=False, latency 0)."""
+    out = []
+    for i in range(len(ends)):
+        s, e = (0 if i == 0 else ends[i - 1]), ends[i]
+        for c in range(s, e):
+            if e < c + (horizon_a - 1) * ds + 1:
+                continue
+            n_valid = min(h_obs, (c - s) // ds + 1)
+            rgb = list(range(c - (n_valid - 1) * ds, c + 1, ds))
+            rgb = [rgb[0]] * (h_obs - len(rgb)) + rgb
+            low = [min(max(c - k * ds, s), e - 1) for k in range(h_obs)][::-1]
+            act = list(range(c, min(e, c + (horizon_a - 1) * ds + 1), ds))
+            out.append((c, s, e, rgb, low, act))
+    return out
+
+
+def test_sample_layout_matches_umi(dataset_path, tmp_path):
+    cfg = tiny_config(dataset_path, tmp_path)
+    ds = UmiPolicyDataset(dataset_path, cfg.task, "train")
+    s = ds[0]
+    assert set(s) == {"obs", "action"}
+    want = {"camera0_rgb": (2, 3, SIZE, SIZE), "robot0_eef_pos": (2, 3), "robot0_eef_rot_axis_angle": (2, 6),
+            "robot0_gripper_width": (2, 1), "robot0_eef_rot_axis_angle_wrt_start": (2, 6)}
+    assert {k: tuple(v.shape) for k, v in s["obs"].items()} == want
+    assert all(v.dtype == torch.float32 for v in s["obs"].values())
+    assert s["action"].shape == (16, 10) and s["action"].dtype == torch.float32
+    img = s["obs"]["camera0_rgb"]
+    assert 0.0 <= float(img.min()) and float(img.max()) <= 1.0
+    # shape_meta is UMI's task/umi.yaml layout
+    assert ds.shape_meta["action"] == {"shape": [10], "horizon": 16, "down_sample_steps": 2}
+    assert ds.shape_meta["obs"]["robot0_eef_rot_axis_angle"]["shape"] == [6]
+
+
+def test_indices_and_values_match_umi_sampler(dataset_path, tmp_path):
+    cfg = tiny_config(dataset_path, tmp_path, val_ratio=0.0, start_pose_noise=0.0)
+    ds = UmiPolicyDataset(dataset_path, cfg.task, "all")
+    with ReplayBuffer.open(dataset_path) as buf:
+        ends = buf.episode_ends
+        pos = buf["robot0_eef_pos"][:].astype(np.float64)
+        rot = buf["robot0_eef_rot_axis_angle"][:].astype(np.float64)
+        grip = buf["robot0_gripper_width"][:].astype(np.float64)
+        rgb_all = buf["camera0_rgb"][:]
+        start6 = buf["robot0_demo_start_pose"][:]
+    ref = _umi_sampler_reference(list(ends), 16, 2, 2)
+    assert len(ds) == len(ref) == 4 * (40 - 30)
+    for k in (0, 3, len(ref) - 1):
+        c, s, e, rgb, low, act = ref[k]
+        assert tuple(ds.indices[k]) == (c, s, e)
+        r, lo = sample_frame_indices(c, s, e, 2, 2)
+        assert r.tolist() == rgb and lo.tolist() == low
+        sample = ds[k]
+        np.testing.assert_allclose(sample["obs"]["camera0_rgb"].numpy(),
+                                   rgb_all[rgb].transpose(0, 3, 1, 2).astype(np.float32) / 255.0)
+        T = pos_rotvec_to_pose(np.concatenate([pos, rot], 1))
+        rel_obs = relative_pose(T[low[-1]], T[low])
+        np.testing.assert_allclose(sample["obs"]["robot0_eef_pos"].numpy(), rel_obs[:, :3, 3], atol=1e-6)
+        rel_act = relative_pose(T[low[-1]], T[act])
+        np.testing.assert_allclose(sample["action"][:, :3].numpy(), rel_act[:, :3, 3], atol=1e-6)
+        np.testing.assert_allclose(sample["action"][:, 3:9].numpy(), rel_act[:, :2, :3].reshape(16, 6), atol=1e-6)
+        np.testing.assert_allclose(sample["action"][:, 9].numpy(), grip[act, 0], atol=1e-7)
+        np.testing.assert_allclose(sample["obs"]["robot0_gripper_width"].numpy(), grip[low], atol=1e-7)
+        S = pos_rotvec_to_pose(start6[c])
+        np.testing.assert_allclose(sample["obs"]["robot0_eef_rot_axis_angle_wrt_start"].numpy(),
+                                   relative_pose(S, T[low])[:, :2, :3].reshape(2, 6), atol=1e-6)
+
+
+def test_padding_at_episode_start_repeats_like_umi():
+    rgb, low = sample_frame_indices(cur=14, start=10, end=60, horizon=3, down_sample=3)
+    assert rgb.tolist() == [11, 11, 14]   # earliest valid strided frame repeated
+    assert low.tolist() == [10, 11, 14]   # clipped to the episode start
+
+
+def test_val_split_is_umis():
+    for n, r, seed in [(20, 0.05, 42), (7, 0.3, 1), (2, 0.5, 0)]:
+        m = get_val_mask(n, r, seed)
+        n_val = min(max(1, round(n * r)), n - 1)
+        ref = np.zeros(n, bool)
+        ref[np.random.default_rng(seed).choice(n, size=n_val, replace=False)] = True
+        np.testing.assert_array_equal(m, ref)
+    assert not get_val_mask(5, 0.0).any() and not get_val_mask(1, 0.5).any()
+
+
+def test_train_val_episodes_disjoint_and_noise_only_in_train(dataset_path, tmp_path):
+    cfg = tiny_config(dataset_path, tmp_path, val_ratio=0.25)
+    tr = UmiPolicyDataset(dataset_path, cfg.task, "train")
+    va = tr.get_validation_dataset()
+    assert len(tr) == 30 and len(va) == 10
+    assert not set(map(tuple, tr.indices[:, 1:])) & set(map(tuple, va.indices[:, 1:]))
+    assert va.start_pose_noise == 0 and tr.start_pose_noise == cfg.task.start_pose_noise
+    a, b = va[0], va[0]
+    assert torch.equal(a["obs"]["robot0_eef_rot_axis_angle_wrt_start"], b["obs"]["robot0_eef_rot_axis_angle_wrt_start"])
+
+
+def test_normalizer_fit_without_images(dataset_path, tmp_path, monkeypatch):
+    cfg = tiny_config(dataset_path, tmp_path)
+    ds = UmiPolicyDataset(dataset_path, cfg.task, "train")
+    monkeypatch.setattr(ds, "read_frames", lambda *a: pytest.fail("fit_normalizer decoded an image"))
+    n = ds.fit_normalizer()
+    monkeypatch.undo()
+    assert set(n.keys()) == {"action", "robot0_eef_pos", "robot0_eef_rot_axis_angle", "robot0_gripper_width",
+                             "robot0_eef_rot_axis_angle_wrt_start"}
+    sc, of = n.params("action")
+    assert torch.equal(sc[3:9], torch.ones(6)) and torch.equal(of[3:9], torch.zeros(6))  # rot6d: identity
+    acts = torch.stack([ds[i]["action"] for i in range(len(ds))])
+    na = n.normalize(acts, "action")
+    assert float(na[..., :3].min()) >= -1 - 1e-4 and float(na[..., :3].max()) <= 1 + 1e-4
+    assert float(na[..., 9].min()) >= -1 - 1e-4 and float(na[..., 9].max()) <= 1 + 1e-4
+
+
+def test_dataset_errors(tmp_path, rng):
+    path = make_dataset(tmp_path / "short.zarr.zip", rng, n_episodes=2, length=12)
+    cfg = tiny_config(path, tmp_path)
+    ds = UmiPolicyDataset(path, cfg.task, "train")
+    assert len(ds) == 0
+    with pytest.raises(PolicyError, match="no samples"):
+        ds.fit_normalizer()
+    cfg.task.action_padding = True  # padding makes short episodes usable
+    ds = UmiPolicyDataset(path, cfg.task, "all")
+    assert len(ds) == 24 and ds[23]["action"].shape == (16, 10)
+    cfg.task.image_size = 64
+    with pytest.raises(PolicyError, match="image_size"):
+        UmiPolicyDataset(path, cfg.task)
+    cfg.task.image_size, cfg.task.n_cameras = SIZE, 2
+    with pytest.raises(PolicyError, match="camera1_rgb"):
+        UmiPolicyDataset(path, cfg.task)
+    with pytest.raises(PolicyError, match="dataset_path"):
+        UmiPolicyDataset(tmp_path / "nope.zarr.zip", cfg.task)
+
+
+def test_dataloader_workers_read_the_zip(dataset_path, tmp_path):
+    """Two worker processes each open their own zip handle; batches equal the in-process ones."""
+    cfg = tiny_config(dataset_path, tmp_path, start_pose_noise=0.0)
+    ds = UmiPolicyDataset(dataset_path, cfg.task, "train")
+    ref = [ds[i]["obs"]["camera0_rgb"] for i in range(6)]
+    ds[0]  # open a handle in this process first: workers must not reuse it
+    dl = torch.utils.data.DataLoader(ds, batch_size=3, num_workers=2, shuffle=False,
+                                     multiprocessing_context="fork")
+    got = [b["obs"]["camera0_rgb"] for _, b in zip(range(2), dl)]
+    assert torch.equal(torch.cat(got), torch.stack(ref))

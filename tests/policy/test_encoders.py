@@ -1,0 +1,159 @@
+import logging
+
+import pytest
+import torch
+
+from tests.policy.helpers import SIZE
+from umi_aug.errors import PolicyError
+from umi_aug.policy.config import EncoderConfig, TaskConfig, shape_meta
+from umi_aug.policy.encoders import ObsEncoder, timm_clip_to_hf
+from umi_aug.policy.image_aug import CLIP_MEAN, CLIP_STD, color_jitter, hsv_to_rgb, normalize_image, rgb_to_hsv
+
+TINY_VIT = dict(name="clip_vit", vit_hidden_size=64, vit_layers=2, vit_heads=2, vit_mlp_size=128, vit_patch_size=8)
+
+
+def _meta(size=SIZE, **kw):
+    return shape_meta(TaskConfig(dataset_path="x", image_size=size, **kw))
+
+
+def _obs(B=2, size=SIZE, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return {"camera0_rgb": torch.rand(B, 2, 3, size, size, generator=g),
+            "robot0_eef_pos": torch.randn(B, 2, 3, generator=g),
+            "robot0_eef_rot_axis_angle": torch.randn(B, 2, 6, generator=g),
+            "robot0_gripper_width": torch.rand(B, 2, 1, generator=g),
+            "robot0_eef_rot_axis_angle_wrt_start": torch.randn(B, 2, 6, generator=g)}
+
+
+def _hf_to_timm(sd):
+    """Inverse of timm_clip_to_hf (test helper): CLIPVisionModel keys → timm vit_*_clip keys."""
+    out = {}
+    vm = "vision_model."
+    sd = {(k if k.startswith(vm) else vm + k): v for k, v in sd.items()}  # transformers 5 drops the prefix
+    out["cls_token"] = sd[vm + "embeddings.class_embedding"].reshape(1, 1, -1)
+    out["pos_embed"] = sd[vm + "embeddings.position_embedding.weight"][None]
+    out["patch_embed.proj.weight"] = sd[vm + "embeddings.patch_embedding.weight"]
+    for a, b in (("pre_layrnorm", "norm_pre"), ("post_layernorm", "norm")):
+        for p in ("weight", "bias"):
+            out[f"{b}.{p}"] = sd[f"{vm}{a}.{p}"]
+    i = 0
+    while f"{vm}encoder.layers.{i}.layer_norm1.weight" in sd:
+        L = f"{vm}encoder.layers.{i}."
+        for p in ("weight", "bias"):
+            out[f"blocks.{i}.attn.qkv.{p}"] = torch.cat([sd[L + f"self_attn.{x}_proj.{p}"] for x in "qkv"])
+            for a, b in (("self_attn.out_proj", "attn.proj"), ("layer_norm1", "norm1"), ("layer_norm2", "norm2"),
+                         ("mlp.fc1", "mlp.fc1"), ("mlp.fc2", "mlp.fc2")):
+                out[f"blocks.{i}.{b}.{p}"] = sd[L + f"{a}.{p}"]
+        i += 1
+    return out
+
+
+def test_vit_encoder_shapes_and_train_only_augmentation(caplog):
+    torch.manual_seed(0)
+    with caplog.at_level(logging.WARNING):
+        enc = ObsEncoder(_meta(), EncoderConfig(**TINY_VIT))
+    assert "RANDOM weights" in caplog.text
+    assert enc.output_dim == 2 * 64 + 2 * (3 + 6 + 1 + 6)
+    obs = _obs()
+    enc.eval()
+    with torch.no_grad():
+        a, b = enc(obs), enc(obs)
+    assert a.shape == (2, enc.output_dim) and torch.equal(a, b)  # eval: no crop, no jitter
+    # eval pre-processing is exactly the CLIP normalisation
+    pre = enc.preprocess(obs["camera0_rgb"])
+    m, s = torch.tensor(CLIP_MEAN)[:, None, None], torch.tensor(CLIP_STD)[:, None, None]
+    assert torch.allclose(pre, (obs["camera0_rgb"] - m) / s)
+    enc.train()
+    with torch.no_grad():
+        c = enc(obs)
+    assert not torch.allclose(a[:, :128], c[:, :128])  # training: augmented images
+    assert torch.equal(a[:, 128:], c[:, 128:])  # low-dim part untouched, sorted keys flattened
+    assert torch.equal(a[:, 128:131], obs["robot0_eef_pos"][:, 0])
+
+
+def test_resnet_encoder_and_frozen():
+    enc = ObsEncoder(_meta(), EncoderConfig(name="resnet", resnet_width=8, resnet_blocks=[1, 1, 1, 1], frozen=True))
+    assert enc.feature_dim == 64 and enc.output_dim == 2 * 64 + 32
+    assert not any(p.requires_grad for p in enc.backbone_parameters())
+    assert enc.eval()(_obs()).shape == (2, enc.output_dim)
+    with pytest.raises(PolicyError, match="camera0_rgb"):
+        enc({k: v for k, v in _obs().items() if k != "camera0_rgb"})
+    with pytest.raises(PolicyError, match="must be"):
+        enc({**_obs(), "robot0_eef_pos": torch.zeros(2, 3, 3)})
+
+
+def test_clip_weights_from_hf_folder_and_timm_file(tmp_path):
+    torch.manual_seed(1)
+    src = ObsEncoder(_meta(), EncoderConfig(**TINY_VIT)).eval()
+    hf_model = src.backbones["camera0_rgb"].model
+    hf_model.save_pretrained(tmp_path / "clip")
+    obs = _obs()
+    with torch.no_grad():
+        ref = src(obs)
+    from_dir = ObsEncoder(_meta(), EncoderConfig(**TINY_VIT, pretrained_path=str(tmp_path / "clip"))).eval()
+    assert from_dir.pretrained
+    with torch.no_grad():
+        assert torch.allclose(from_dir(obs), ref, atol=1e-6)
+    # a UMI-style checkpoint: timm keys under obs_encoder.key_model_map.<camera>.
+    sd = _hf_to_timm(hf_model.state_dict())
+    own = {k.replace("vision_model.", "") for k in hf_model.state_dict() if not k.endswith("position_ids")}
+    assert {k.replace("vision_model.", "") for k in timm_clip_to_hf(sd)} == own
+    payload = {"state_dicts": {"model": {f"obs_encoder.key_model_map.camera0_rgb.{k}": v for k, v in sd.items()}}}
+    torch.save(payload, tmp_path / "umi.ckpt")
+    from_timm = ObsEncoder(_meta(), EncoderConfig(**TINY_VIT, pretrained_path=str(tmp_path / "umi.ckpt"))).eval()
+    with torch.no_grad():
+        assert torch.allclose(from_timm(obs), ref, atol=1e-6)
+    # wrong architecture / not weights → clear errors naming the file
+    torch.save({"foo": torch.zeros(3)}, tmp_path / "bad.pt")
+    with pytest.raises(PolicyError, match="bad.pt"):
+        ObsEncoder(_meta(), EncoderConfig(**TINY_VIT, pretrained_path=str(tmp_path / "bad.pt")))
+    wide = dict(TINY_VIT, vit_hidden_size=32, vit_mlp_size=64)
+    with pytest.raises(PolicyError, match="does not fit"):
+        ObsEncoder(_meta(), EncoderConfig(**wide, pretrained_path=str(tmp_path / "umi.ckpt")))
+    with pytest.raises(PolicyError, match="not a file"):
+        ObsEncoder(_meta(), EncoderConfig(**TINY_VIT, pretrained_path=str(tmp_path / "missing.bin")))
+
+
+def test_clip_weights_from_full_clip_model(tmp_path):
+    """OpenAI's HF checkpoints are full CLIPModel folders (vision_model.* + text_model.*): folder and file load."""
+    from transformers import CLIPConfig, CLIPModel
+
+    torch.manual_seed(2)
+    conf = CLIPConfig(
+        text_config=dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2,
+                         vocab_size=64, max_position_embeddings=16),
+        vision_config=dict(hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=2,
+                           image_size=SIZE, patch_size=8, hidden_act="quick_gelu"), projection_dim=16)
+    clip = CLIPModel(conf).eval()
+    clip.save_pretrained(tmp_path / "clip_full")
+    x = torch.rand(2, 2, 3, SIZE, SIZE)
+    ref = clip.vision_model(pixel_values=normalize_image(x.reshape(4, 3, SIZE, SIZE), CLIP_MEAN, CLIP_STD))
+    for p in (tmp_path / "clip_full", tmp_path / "clip_full" / "model.safetensors"):
+        enc = ObsEncoder(_meta(), EncoderConfig(**TINY_VIT, pretrained_path=str(p))).eval()
+        with torch.no_grad():
+            out = enc({**_obs(), "camera0_rgb": x})
+        assert torch.allclose(out[:, :128], ref.pooler_output.reshape(2, 128), atol=1e-5), p
+
+
+def test_color_jitter_and_hsv():
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(3, 2, 3, 8, 8, generator=g)
+    assert torch.allclose(hsv_to_rgb(rgb_to_hsv(img)), img, atol=1e-5)
+    assert torch.allclose(color_jitter(img, 0, 0, 0, 0), img)
+    out = color_jitter(img, 0.3, 0.4, 0.5, 0.08, generator=g)
+    assert out.shape == img.shape and float(out.min()) >= 0 and float(out.max()) <= 1
+    assert not torch.allclose(out, img)
+    assert not torch.allclose(out[0] - img[0], out[1] - img[1])  # per-sample factors
+    assert torch.allclose(normalize_image(torch.ones(3, 1, 1), (0.5,) * 3, (0.25,) * 3), torch.full((3, 1, 1), 2.0))
+
+
+@pytest.mark.slow
+def test_vit_b16_output_matches_umi():
+    """The paper's encoder: ViT-B/16 at 224², CLS 768-d per frame → 2·768 + 2·16 = 1568 (UMI's global cond)."""
+    torch.manual_seed(0)
+    enc = ObsEncoder(_meta(224), EncoderConfig()).eval()
+    n = sum(p.numel() for p in enc.backbone_parameters())
+    assert 85e6 < n < 87e6
+    assert enc.output_dim == 1568
+    with torch.no_grad():
+        assert enc(_obs(1, 224)).shape == (1, 1568)

@@ -1,0 +1,293 @@
+"""Training dataset from a UMI replay buffer with UMI's sampling (``UmiDataset`` + ``SequenceSampler``).
+
+Per sample index (a "current" step ``c`` of episode ``[s, e)``), with down-sampling ``d``:
+
+* images ``camera{j}_rgb``: frames ``c-(h-1)d, …, c`` (step d); frames before the episode start are replaced by
+  the earliest valid one (UMI's padding); float32 (h, 3, H, W) in [0, 1]. Only these frames are decoded.
+* low-dim: the same indices clipped to ``[s, e-1]``; poses converted to the policy representation (relative to
+  the pose at ``c``: ``inv(T_c) @ T_t``, as pos + rot6d), gripper width as is; ``*_rot_axis_angle_wrt_start`` =
+  rot6d of ``inv(T_start + noise) @ T_t`` (UMI adds N(0, 0.05) to the 6-vector; here only in the training split).
+* action: rows ``c, c+d, …, c+(H-1)d`` of [pos, rotvec, gripper] → relative pos + rot6d + gripper (H, 10·R).
+  Windows that cross the episode end are skipped unless ``action_padding`` (then the last row repeats).
+
+Episodes are split into train / validation by UMI's ``get_val_mask`` (same seed → same episodes as UMI). The
+normaliser is fitted from the low-dim arrays only (no image is decoded). The zarr store is opened lazily once per
+process, so DataLoader workers never share a zip file handle.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from umi_aug.errors import DatasetError, PolicyError
+from umi_aug.geometry import pos_rotvec_to_pose
+from umi_aug.policy.config import TaskConfig, shape_meta
+from umi_aug.policy.normalizer import LinearNormalizer, identity_params, range_params
+from umi_aug.policy.pose_repr import abs_actions_to_model, obs_pose_to_model, wrt_start_rot6d
+
+__all__ = ["UmiPolicyDataset", "get_val_mask", "sample_frame_indices"]
+
+log = logging.getLogger(__name__)
+
+#: Samples per chunk when fitting the normaliser (bounds memory: ~chunk × H × 16 doubles per arm).
+_FIT_CHUNK = 8192
+
+
+def get_val_mask(n_episodes: int, val_ratio: float, seed: int = 0) -> np.ndarray:
+    """Boolean (E,) mask of validation episodes, identical to UMI's ``get_val_mask``: at least one validation and
+    one training episode when ``val_ratio > 0``; chosen with ``np.random.default_rng(seed)``."""
+    mask = np.zeros(n_episodes, dtype=bool)
+    if val_ratio <= 0 or n_episodes < 2:
+        return mask
+    n_val = min(max(1, round(n_episodes * val_ratio)), n_episodes - 1)
+    mask[np.random.default_rng(seed=seed).choice(n_episodes, size=n_val, replace=False)] = True
+    return mask
+
+
+def sample_frame_indices(cur: int, start: int, end: int, horizon: int, down_sample: int) -> tuple[np.ndarray, np.ndarray]:
+    """UMI's observation frame indices for current step ``cur`` of episode ``[start, end)``.
+
+    Returns:
+        (rgb_idx [h], lowdim_idx [h]) int64: images repeat the earliest in-episode frame of the strided window;
+        low-dim indices are clipped to ``[start, end-1]`` (UMI interpolates there; with zero latency that is exact).
+    """
+    k = np.arange(horizon - 1, -1, -1, dtype=np.int64) * down_sample
+    raw = cur - k
+    n_valid = min(horizon, (cur - start) // down_sample + 1)
+    rgb = np.maximum(raw, cur - (n_valid - 1) * down_sample)
+    low = np.clip(raw, start, end - 1)
+    return rgb, low
+
+
+class UmiPolicyDataset(torch.utils.data.Dataset):
+    """UMI replay buffer → ``{'obs': {key: float32 tensor (h, ...)}, 'action': float32 (H, 10·R)}`` samples.
+
+    Args:
+        dataset_path: UMI ``.zarr.zip`` or zarr directory.
+        task: sampling / representation settings (:class:`TaskConfig`).
+        split: "train", "val" or "all" (episode-level split by ``task.val_ratio`` / ``task.split_seed``).
+        start_pose_noise: std of the noise added to the start pose for ``wrt_start`` (None: ``task``'s value in
+            the training split, 0 otherwise).
+
+    Raises:
+        PolicyError: missing keys, image size different from ``task.image_size``, no sample in the split.
+    """
+
+    def __init__(self, dataset_path: str | os.PathLike, task: TaskConfig, split: str = "train",
+                 start_pose_noise: float | None = None) -> None:
+        from umi_aug.data import ReplayBuffer
+
+        if split not in ("train", "val", "all"):
+            raise PolicyError(f"UmiPolicyDataset: split must be 'train', 'val' or 'all', got {split!r}")
+        self.path = str(dataset_path)
+        self.task = task
+        self.split = split
+        self.shape_meta = shape_meta(task)
+        self.rgb_keys = sorted(k for k, v in self.shape_meta["obs"].items() if v["type"] == "rgb")
+        self.lowdim_keys = sorted(k for k, v in self.shape_meta["obs"].items() if v["type"] == "low_dim")
+        self.start_pose_noise = (task.start_pose_noise if split == "train" else 0.0) if start_pose_noise is None \
+            else float(start_pose_noise)
+        try:
+            buf = ReplayBuffer.open(self.path)
+        except DatasetError as exc:
+            raise PolicyError(f"task.dataset_path: {exc}") from exc
+        try:
+            self._load_lowdim(buf)
+        finally:
+            buf.close()
+        self.val_mask = get_val_mask(len(self.episode_ends), task.val_ratio, task.split_seed)
+        self._build_indices()
+        self._buf: Any = None
+        self._pid: int | None = None
+        self._rng: np.random.Generator | None = None
+        self._rng_key: tuple[int, int] | None = None
+
+    # ------------------------------------------------------------------ setup
+    def _load_lowdim(self, buf) -> None:
+        keys = set(buf.keys())
+        need = []
+        for i in range(self.task.n_robots):
+            need += [f"robot{i}_eef_pos", f"robot{i}_eef_rot_axis_angle", f"robot{i}_gripper_width"]
+            if self.task.use_wrt_start:
+                need.append(f"robot{i}_demo_start_pose")
+        need += self.rgb_keys
+        missing = [k for k in need if k not in keys]
+        if missing:
+            raise PolicyError(f"{self.path}: keys {missing} needed by task {self.task.name!r} "
+                              f"(n_robots={self.task.n_robots}, n_cameras={self.task.n_cameras}) are missing; "
+                              f"the buffer has {sorted(keys)}")
+        S = self.task.image_size
+        for k in self.rgb_keys:
+            shp = tuple(buf[k].shape[1:])
+            if shp != (S, S, 3):
+                raise PolicyError(f"{self.path}: key 'data/{k}' holds {shp} images; task.image_size={S} needs "
+                                  f"({S}, {S}, 3)")
+        self.episode_ends = buf.episode_ends
+        if len(self.episode_ends) == 0:
+            raise PolicyError(f"{self.path}: the replay buffer has no episodes")
+        self.pose6, self.gripper, self.start_pose = [], [], []
+        for i in range(self.task.n_robots):
+            pos = np.asarray(buf[f"robot{i}_eef_pos"][:], dtype=np.float64)
+            rot = np.asarray(buf[f"robot{i}_eef_rot_axis_angle"][:], dtype=np.float64)
+            self.pose6.append(np.concatenate([pos, rot], axis=1))
+            self.gripper.append(np.asarray(buf[f"robot{i}_gripper_width"][:], dtype=np.float64))
+            if self.task.use_wrt_start:
+                self.start_pose.append(np.asarray(buf[f"robot{i}_demo_start_pose"][:], dtype=np.float64))
+
+    def _build_indices(self) -> None:
+        t = self.task
+        span = (t.action_horizon - 1) * t.obs_down_sample_steps + 1
+        cur, start, end = [], [], []
+        s = 0
+        for ep, e in enumerate(self.episode_ends):
+            e = int(e)
+            use = {"train": not self.val_mask[ep], "val": bool(self.val_mask[ep]), "all": True}[self.split]
+            if use:
+                last = e if t.action_padding else e - span + 1
+                c = np.arange(s, max(s, last), dtype=np.int64)
+                cur.append(c)
+                start.append(np.full_like(c, s))
+                end.append(np.full_like(c, e))
+            s = e
+        cat = (lambda xs: np.concatenate(xs) if xs else np.zeros(0, np.int64))
+        self.indices = np.stack([cat(cur), cat(start), cat(end)], axis=1)
+
+    def get_validation_dataset(self) -> "UmiPolicyDataset":
+        """The validation split of the same buffer (no start-pose noise)."""
+        val = copy.copy(self)
+        val.split, val.start_pose_noise = "val", 0.0
+        val._buf, val._pid = None, None
+        val._build_indices()
+        return val
+
+    def __len__(self) -> int:
+        return int(self.indices.shape[0])
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_buf"], state["_pid"] = None, None
+        return state
+
+    # ------------------------------------------------------------------ sampling
+    def _indices(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For sample indices ``idx`` [N]: low-dim obs rows [N, h], action rows [N, H], current rows [N]."""
+        t = self.task
+        cur, start, end = self.indices[idx].T
+        d = t.obs_down_sample_steps
+        k = np.arange(t.low_dim_obs_horizon - 1, -1, -1, dtype=np.int64) * d
+        low = np.clip(cur[:, None] - k[None], start[:, None], end[:, None] - 1)
+        a = cur[:, None] + np.arange(t.action_horizon, dtype=np.int64)[None] * d
+        a = np.minimum(a, end[:, None] - 1)  # only reached with action_padding: repeat the last row
+        return low, a, cur
+
+    def lowdim_batch(self, idx: np.ndarray, noise_rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
+        """Low-dim observations and actions of samples ``idx`` [N] (float64, no images)."""
+        t = self.task
+        low, a_rows, cur = self._indices(np.asarray(idx, dtype=np.int64))
+        out: dict[str, np.ndarray] = {}
+        actions = []
+        for i in range(t.n_robots):
+            p6 = self.pose6[i]
+            pos, rot = p6[low, :3], p6[low, 3:]
+            T_cur = pos_rotvec_to_pose(p6[low[:, -1]])
+            mp, mr = obs_pose_to_model(pos, rot, t.obs_pose_repr)
+            out[f"robot{i}_eef_pos"], out[f"robot{i}_eef_rot_axis_angle"] = mp, mr
+            out[f"robot{i}_gripper_width"] = self.gripper[i][low]
+            if t.use_wrt_start:
+                sp = self.start_pose[i][cur].copy()
+                if noise_rng is not None and self.start_pose_noise > 0:
+                    sp += noise_rng.normal(scale=self.start_pose_noise, size=sp.shape)
+                out[f"robot{i}_eef_rot_axis_angle_wrt_start"] = wrt_start_rot6d(pos, rot, sp)
+            a7 = np.concatenate([p6[a_rows], self.gripper[i][a_rows]], axis=-1)
+            # UMI's dataset converts actions with obs_pose_repr but deployment undoes them with action_pose_repr;
+            # both are "relative" by default — here action_pose_repr is used on both sides
+            actions.append(abs_actions_to_model(a7, T_cur, t.action_pose_repr))
+        out["action"] = np.concatenate(actions, axis=-1)
+        return out
+
+    def _noise_rng(self) -> np.random.Generator:
+        key = (os.getpid(), torch.initial_seed())
+        if self._rng is None or self._rng_key != key:
+            self._rng, self._rng_key = np.random.default_rng(key[1] % (2 ** 63)), key
+        return self._rng
+
+    def _buffer(self):
+        if self._buf is None or self._pid != os.getpid():
+            from umi_aug.data import ReplayBuffer
+
+            self._buf = ReplayBuffer.open(self.path, check_values=False)
+            self._pid = os.getpid()
+        return self._buf
+
+    def read_frames(self, key: str, rows: np.ndarray) -> np.ndarray:
+        """uint8 [len(rows), H, W, 3] frames of ``camera{j}_rgb``; each distinct frame is decoded once."""
+        uniq, inv = np.unique(rows, return_inverse=True)
+        arr = self._buffer()[key]
+        if len(uniq) > 1 and np.all(np.diff(uniq) == uniq[1] - uniq[0]):
+            step = int(uniq[1] - uniq[0])
+            frames = arr[int(uniq[0]): int(uniq[-1]) + 1: step]
+        else:
+            frames = np.stack([arr[int(r)] for r in uniq])
+        return frames[inv]
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        t = self.task
+        if not 0 <= index < len(self):
+            raise IndexError(f"sample index {index} out of range for {len(self)} samples")
+        low = self.lowdim_batch(np.array([index]), self._noise_rng())
+        obs: dict[str, torch.Tensor] = {}
+        cur, start, end = (int(v) for v in self.indices[index])
+        rgb_rows, _ = sample_frame_indices(cur, start, end, t.img_obs_horizon, t.obs_down_sample_steps)
+        for key in self.rgb_keys:
+            frames = self.read_frames(key, rgb_rows)  # [h, H, W, 3] uint8
+            obs[key] = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2))).float().div_(255.0)
+        for key in self.lowdim_keys:
+            obs[key] = torch.from_numpy(low[key][0].astype(np.float32))
+        return {"obs": obs, "action": torch.from_numpy(low["action"][0].astype(np.float32))}
+
+    # ------------------------------------------------------------------ normaliser
+    def fit_normalizer(self) -> LinearNormalizer:
+        """UMI's normaliser from every sample of this split, without decoding images: action pos/gripper →
+        range [-1, 1], rot6d → identity; obs ``*pos``/``*gripper_width`` → range, rot6d keys → identity."""
+        n = len(self)
+        if n == 0:
+            raise PolicyError(f"{self.path}: split {self.split!r} has no samples (episodes too short for "
+                              f"action_horizon={self.task.action_horizon} × down_sample="
+                              f"{self.task.obs_down_sample_steps}?); cannot fit the normaliser")
+        chunks: dict[str, list[np.ndarray]] = {}
+        for s in range(0, n, _FIT_CHUNK):
+            d = self.lowdim_batch(np.arange(s, min(n, s + _FIT_CHUNK)))
+            for k, v in d.items():
+                chunks.setdefault(k, []).append(v.reshape(-1, v.shape[-1]))
+        data = {k: np.concatenate(v) for k, v in chunks.items()}
+        norm = LinearNormalizer()
+        act = data["action"]
+        scale, offset = [], []
+        for i in range(self.task.n_robots):
+            a = act[:, 10 * i: 10 * (i + 1)]
+            for part, fit in ((a[:, :3], range_params), (a[:, 3:9], None), (a[:, 9:], range_params)):
+                sc, of = fit(part) if fit else identity_params(part.shape[1])
+                scale.append(sc)
+                offset.append(of)
+        norm.set("action", np.concatenate(scale), np.concatenate(offset))
+        for key in self.lowdim_keys:
+            x = data[key]
+            if key.endswith("pos") or key.endswith("gripper_width"):
+                norm.set(key, *range_params(x))
+            elif "rot_axis_angle" in key:
+                norm.set(key, *identity_params(x.shape[1]))
+            else:  # pragma: no cover - shape_meta only makes the keys above
+                raise PolicyError(f"no normaliser rule for observation key {key!r}")
+        return norm
+
+    def describe(self) -> str:
+        n_ep = {"train": int((~self.val_mask).sum()), "val": int(self.val_mask.sum()),
+                "all": len(self.val_mask)}[self.split]
+        return f"{Path(self.path).name} [{self.split}]: {n_ep} episodes, {len(self)} samples"

@@ -1,0 +1,134 @@
+"""Image pre-processing of the observation encoder, in pure torch (torchvision does not import here).
+
+* :func:`random_crop_resize`: a random ``round(S·ratio)`` square crop per sample, resized back to S with
+  antialiased bilinear interpolation (UMI: ``RandomCrop(int(224·0.95))`` + ``Resize(224, antialias=True)``).
+* :func:`color_jitter`: torchvision ``ColorJitter(brightness, contrast, saturation, hue)`` semantics — factors
+  drawn uniformly from ``[1-b, 1+b]``, ``[1-c, 1+c]``, ``[1-s, 1+s]``, hue shift from ``[-h, h]`` — applied in a
+  random order; factors are drawn per sample (UMI's call on a (B·T) batch draws one set for the whole batch).
+* :func:`normalize_image`: CLIP / ImageNet mean-std.
+
+The encoder applies crop and jitter only in training mode; the T frames of one sample share the same crop and
+jitter.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["CLIP_MEAN", "CLIP_STD", "IMAGENET_MEAN", "IMAGENET_STD", "random_crop_resize", "color_jitter",
+           "normalize_image", "rgb_to_hsv", "hsv_to_rgb"]
+
+#: OpenAI CLIP pre-processing constants (``CLIPImageProcessor`` image_mean / image_std).
+CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
+CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def normalize_image(img: torch.Tensor, mean: tuple[float, ...], std: tuple[float, ...]) -> torch.Tensor:
+    """``(img - mean) / std`` per channel; img: [..., 3, H, W] in [0, 1]."""
+    m = torch.tensor(mean, dtype=img.dtype, device=img.device)[:, None, None]
+    s = torch.tensor(std, dtype=img.dtype, device=img.device)[:, None, None]
+    return (img - m) / s
+
+
+def random_crop_resize(img: torch.Tensor, ratio: float, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Random square crop of side ``round(S·ratio)`` per sample (same for its T frames), resized back.
+
+    Args:
+        img: Tensor,  # [B, T, 3, H, W] in [0, 1]
+    Returns:
+        Tensor,  # [B, T, 3, H, W]
+    """
+    B, T, C, H, W = img.shape
+    ch, cw = max(1, int(H * ratio)), max(1, int(W * ratio))
+    if ch == H and cw == W:
+        return img
+    oy = torch.randint(0, H - ch + 1, (B,), generator=generator, device="cpu")
+    ox = torch.randint(0, W - cw + 1, (B,), generator=generator, device="cpu")
+    crops = torch.stack([img[b, :, :, int(oy[b]): int(oy[b]) + ch, int(ox[b]): int(ox[b]) + cw] for b in range(B)])
+    out = F.interpolate(crops.reshape(B * T, C, ch, cw), size=(H, W), mode="bilinear", align_corners=False,
+                        antialias=True)
+    return out.reshape(B, T, C, H, W)
+
+
+def _gray(img: torch.Tensor) -> torch.Tensor:  # [..., 3, H, W] → [..., 1, H, W] (ITU-R 601-2 luma)
+    return (0.299 * img[..., 0:1, :, :] + 0.587 * img[..., 1:2, :, :] + 0.114 * img[..., 2:3, :, :])
+
+
+def rgb_to_hsv(img: torch.Tensor) -> torch.Tensor:
+    """[..., 3, H, W] RGB in [0, 1] → HSV with hue in [0, 1)."""
+    r, g, b = img.unbind(-3)
+    maxc, _ = img.max(dim=-3)
+    minc, _ = img.min(dim=-3)
+    eqc = maxc == minc
+    cr = maxc - minc
+    ones = torch.ones_like(maxc)
+    s = cr / torch.where(eqc, ones, maxc)
+    cr_div = torch.where(eqc, ones, cr)
+    rc, gc, bc = (maxc - r) / cr_div, (maxc - g) / cr_div, (maxc - b) / cr_div
+    hr = (maxc == r) * (bc - gc)
+    hg = ((maxc == g) & (maxc != r)) * (2.0 + rc - bc)
+    hb = ((maxc != g) & (maxc != r)) * (4.0 + gc - rc)
+    h = torch.fmod((hr + hg + hb) / 6.0 + 1.0, 1.0)
+    return torch.stack([h, s, maxc], dim=-3)
+
+
+def hsv_to_rgb(img: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`rgb_to_hsv`."""
+    h, s, v = img.unbind(-3)
+    i = torch.floor(h * 6.0)
+    f = h * 6.0 - i
+    i = i.to(torch.int64) % 6
+    p = (v * (1.0 - s)).clamp(0.0, 1.0)
+    q = (v * (1.0 - s * f)).clamp(0.0, 1.0)
+    t = (v * (1.0 - s * (1.0 - f))).clamp(0.0, 1.0)
+    mask = i.unsqueeze(-3) == torch.arange(6, device=i.device).view(-1, 1, 1)
+    a1 = torch.stack((v, q, p, p, t, v), dim=-3)
+    a2 = torch.stack((t, v, v, q, p, p), dim=-3)
+    a3 = torch.stack((p, p, t, v, v, q), dim=-3)
+    a4 = torch.stack((a1, a2, a3), dim=-4)
+    return torch.einsum("...ijk,...xijk->...xjk", mask.to(img.dtype), a4)
+
+
+def color_jitter(img: torch.Tensor, brightness: float, contrast: float, saturation: float, hue: float,
+                 generator: torch.Generator | None = None) -> torch.Tensor:
+    """Colour jitter with per-sample factors shared by the sample's T frames.
+
+    Args:
+        img: Tensor,  # [B, T, 3, H, W] in [0, 1]
+        brightness, contrast, saturation: max relative change (factor in [1-x, 1+x], clipped at 0)
+        hue: max hue shift in turns (≤ 0.5)
+    Returns:
+        Tensor,  # [B, T, 3, H, W] in [0, 1]
+    """
+    B = img.shape[0]
+    shape = (B, 1, 1, 1, 1)
+
+    def factor(x: float) -> torch.Tensor:
+        u = torch.rand(B, generator=generator) * 2.0 - 1.0
+        return (1.0 + x * u).clamp_min(0.0).to(img.device, img.dtype).view(shape)
+
+    ops = []
+    if brightness > 0:
+        fb = factor(brightness)
+        ops.append(lambda x: (x * fb).clamp(0.0, 1.0))
+    if contrast > 0:
+        fc = factor(contrast)
+        ops.append(lambda x: (fc * x + (1 - fc) * _gray(x).mean(dim=(-3, -2, -1), keepdim=True)).clamp(0.0, 1.0))
+    if saturation > 0:
+        fs = factor(saturation)
+        ops.append(lambda x: (fs * x + (1 - fs) * _gray(x)).clamp(0.0, 1.0))
+    if hue > 0:
+        fh = ((torch.rand(B, generator=generator) * 2.0 - 1.0) * hue).to(img.device, img.dtype).view(B, 1, 1, 1)
+
+        def shift_hue(x: torch.Tensor) -> torch.Tensor:
+            hsv = rgb_to_hsv(x)
+            hsv = torch.stack([torch.remainder(hsv[..., 0, :, :] + fh, 1.0), hsv[..., 1, :, :], hsv[..., 2, :, :]],
+                              dim=-3)
+            return hsv_to_rgb(hsv)
+        ops.append(shift_hue)
+    for k in torch.randperm(len(ops), generator=generator).tolist():
+        img = ops[k](img)
+    return img

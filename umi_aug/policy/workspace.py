@@ -1,0 +1,329 @@
+"""Training loop (UMI's ``TrainDiffusionUnetImageWorkspace``, trimmed): AdamW, warm-up + cosine schedule, EMA,
+validation loss, sampled-action MSE, atomic checkpoints with resume, tqdm progress and a JSONL metrics log.
+
+``TrainWorkspace(cfg).run()`` writes under ``output_dir``:
+
+* ``checkpoints/latest.ckpt`` — every ``training.checkpoint_every`` epochs and at the end (see
+  :mod:`umi_aug.policy.checkpoint`); ``training.resume`` continues from it (optimizer, scheduler, EMA, step).
+  Checkpoints are taken between epochs; a run stopped by ``max_steps`` mid-epoch resumes at the start of that
+  epoch (the data order of each epoch is a function of ``seed`` and the epoch number).
+* ``logs.jsonl`` — one JSON object per optimiser step (``train_loss``, ``lr``) and per epoch
+  (``train_loss_epoch``, ``val_loss``, ``train_action_mse_error``).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import os
+import random
+import subprocess
+import sys
+import time
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+
+from umi_aug.errors import PolicyError
+from umi_aug.policy.checkpoint import load_checkpoint, save_checkpoint
+from umi_aug.policy.config import TrainConfig, check_aug, check_config, config_to_dict, structured_config
+from umi_aug.policy.dataset import UmiPolicyDataset
+from umi_aug.policy.diffusion_policy import DiffusionUnetPolicy
+from umi_aug.policy.ema import EMA
+from umi_aug.runtime import configure_threads
+
+__all__ = ["TrainWorkspace", "resolve_dataset_path", "seed_everything", "build_optimizer", "build_lr_scheduler",
+           "iter_jsonl"]
+
+log = logging.getLogger(__name__)
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % (2 ** 32))
+    torch.manual_seed(seed)
+
+
+def resolve_dataset_path(cfg: TrainConfig) -> Path:
+    """``task.dataset_path`` as an absolute path; builds it first when missing and ``task.make_if_missing`` says
+    how ("demo": ``python -m umi_aug demo --out <parent>``; "session": :func:`umi_aug.sim.session.make_session`)."""
+    raw = cfg.task.dataset_path
+    if raw in ("", "???"):
+        raise PolicyError("task.dataset_path is not set: pass task.dataset_path=/path/to/dataset.zarr.zip "
+                          "(a UMI replay buffer) or pick a task with a default (task=demo, task=session)")
+    try:
+        from hydra.utils import to_absolute_path
+
+        path = Path(to_absolute_path(raw))
+    except (ImportError, ValueError):
+        path = Path(raw).absolute()
+    if path.exists():
+        return path
+    how = cfg.task.make_if_missing
+    if not how:
+        raise PolicyError(f"task.dataset_path: {path} does not exist (set task.make_if_missing=demo|session to "
+                          "build a synthetic dataset there)")
+    if path.name != "dataset.zarr.zip":
+        raise PolicyError(f"task.make_if_missing={how}: the generators write <dir>/dataset.zarr.zip, but "
+                          f"task.dataset_path is {path}")
+    log.info("%s is missing: building it (task.make_if_missing=%s)", path, how)
+    if how == "demo":
+        res = subprocess.run([sys.executable, "-m", "umi_aug", "demo", "--out", str(path.parent)],
+                             capture_output=True, text=True)
+        if res.returncode != 0:
+            raise PolicyError(f"`umi-aug demo --out {path.parent}` failed ({res.returncode}): {res.stderr[-2000:]}")
+    else:
+        try:
+            from umi_aug.sim.session import make_session
+        except ImportError as exc:
+            raise PolicyError(f"task.make_if_missing=session needs umi_aug.sim (the synthetic session generator): "
+                              f"{exc}") from exc
+        make_session(path.parent, seed=cfg.training.seed)
+    if not path.exists():
+        raise PolicyError(f"task.make_if_missing={how} ran but {path} still does not exist")
+    return path
+
+
+def build_optimizer(policy: DiffusionUnetPolicy, cfg: TrainConfig) -> torch.optim.Optimizer:
+    """AdamW; the image backbone gets ``lr · pretrained_encoder_lr_scale`` when it started from pretrained weights."""
+    t = cfg.training
+    enc = {id(p) for p in policy.obs_encoder.backbone_parameters()}
+    enc_params = [p for p in policy.parameters() if id(p) in enc and p.requires_grad]
+    rest = [p for p in policy.parameters() if id(p) not in enc and p.requires_grad]
+    enc_lr = t.lr * (t.pretrained_encoder_lr_scale if policy.obs_encoder.pretrained else 1.0)
+    groups = [{"params": rest, "lr": t.lr}]
+    if enc_params:
+        groups.append({"params": enc_params, "lr": enc_lr})
+    return torch.optim.AdamW(groups, lr=t.lr, betas=tuple(t.betas), eps=t.eps, weight_decay=t.weight_decay)
+
+
+def build_lr_scheduler(optimizer: torch.optim.Optimizer, name: str, warmup: int, total: int):
+    """Linear warm-up over ``warmup`` steps then ``cosine`` decay to 0 at ``total`` (or ``constant``)."""
+    if name not in ("cosine", "constant"):
+        raise PolicyError(f"training.lr_scheduler={name!r}: expected 'cosine' or 'constant'")
+    warmup, total = max(0, int(warmup)), max(1, int(total))
+
+    def factor(step: int) -> float:
+        if step < warmup:
+            return float(step + 1) / float(warmup + 1)
+        if name == "constant":
+            return 1.0
+        progress = min(1.0, (step - warmup) / max(1, total - warmup))
+        return 0.5 * (1.0 + math.cos(math.pi * progress))
+
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def _to_device(batch: Any, device: torch.device) -> Any:
+    if isinstance(batch, dict):
+        return {k: _to_device(v, device) for k, v in batch.items()}
+    return batch.to(device, non_blocking=True) if torch.is_tensor(batch) else batch
+
+
+class _JsonlLog:
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(path, "a", encoding="utf-8")
+
+    def write(self, row: dict) -> None:
+        self._f.write(json.dumps(row) + "\n")
+        self._f.flush()
+
+    def close(self) -> None:
+        self._f.close()
+
+
+class TrainWorkspace:
+    """Args:
+        cfg: :class:`TrainConfig`, or anything :func:`structured_config` merges (dict / DictConfig).
+    """
+
+    def __init__(self, cfg: Any) -> None:
+        if not isinstance(cfg, TrainConfig):
+            cfg = structured_config(cfg)
+        check_aug(cfg.aug)
+        check_config(cfg)
+        self.cfg: TrainConfig = cfg
+        if cfg.output_dir:
+            out = Path(cfg.output_dir)
+        else:
+            try:
+                from hydra.core.hydra_config import HydraConfig
+
+                out = Path(HydraConfig.get().runtime.output_dir)
+            except (ImportError, ValueError):
+                out = Path.cwd()
+        self.output_dir = out.absolute()
+        self.ckpt_path = self.output_dir / "checkpoints" / "latest.ckpt"
+
+    # ------------------------------------------------------------------ pieces
+    def build_datasets(self) -> tuple[UmiPolicyDataset, UmiPolicyDataset]:
+        path = resolve_dataset_path(self.cfg)
+        train = UmiPolicyDataset(path, self.cfg.task, "train")
+        if len(train) == 0:
+            raise PolicyError(f"{path}: no training sample: every training episode is shorter than the action window "
+                              f"((action_horizon-1)·down_sample+1 = "
+                              f"{(self.cfg.task.action_horizon - 1) * self.cfg.task.obs_down_sample_steps + 1} "
+                              "frames); lower task.obs_down_sample_steps or set task.action_padding=true")
+        return train, train.get_validation_dataset()
+
+    def _loader(self, ds: UmiPolicyDataset, train: bool, epoch: int = 0) -> torch.utils.data.DataLoader:
+        c, d = self.cfg.dataloader, self.cfg.device
+        g = torch.Generator()
+        g.manual_seed(self.cfg.training.seed * 100003 + epoch)
+        return torch.utils.data.DataLoader(
+            ds, batch_size=c.batch_size if train else c.val_batch_size, shuffle=c.shuffle and train, generator=g,
+            num_workers=d.num_workers, pin_memory=d.pin_memory and torch.cuda.is_available(),
+            persistent_workers=False, drop_last=False)
+
+    # ------------------------------------------------------------------ run
+    def run(self) -> dict[str, Any]:
+        cfg, t = self.cfg, self.cfg.training
+        configure_threads(cfg.device.threads)
+        if cfg.device.threads:
+            torch.set_num_threads(int(cfg.device.threads))
+        device = torch.device(cfg.device.device)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise PolicyError(f"device.device={cfg.device.device!r} but CUDA is not available (use device=cpu)")
+        seed_everything(t.seed)
+        self.output_dir.mkdir(parents=True, exist_ok=True)
+        train_set, val_set = self.build_datasets()
+        log.info("dataset: %s; %s", train_set.describe(), val_set.describe())
+        normalizer = train_set.fit_normalizer()
+
+        policy = DiffusionUnetPolicy(train_set.shape_meta, cfg.policy).to(device)
+        policy.set_normalizer(normalizer)
+        ema = None
+        if t.use_ema:
+            ema = EMA(copy.deepcopy(policy), t.ema_update_after_step, t.ema_inv_gamma, t.ema_power,
+                      t.ema_min_value, t.ema_max_value)
+        optimizer = build_optimizer(policy, cfg)
+        steps_per_epoch = math.ceil(len(train_set) / cfg.dataloader.batch_size)
+        total = t.num_epochs * steps_per_epoch
+        if t.max_steps is not None:
+            total = min(total, int(t.max_steps))
+        lr_sched = build_lr_scheduler(optimizer, t.lr_scheduler, t.lr_warmup_steps, total)
+
+        global_step, epoch = 0, 0
+        if t.resume and self.ckpt_path.exists():
+            payload = load_checkpoint(self.ckpt_path, map_location=device)
+            sd = payload["state_dicts"]
+            policy.load_state_dict(sd["model"])
+            optimizer.load_state_dict(sd["optimizer"])
+            lr_sched.load_state_dict(sd["lr_scheduler"])
+            if ema is not None and "ema_model" in sd:
+                ema.averaged_model.load_state_dict(sd["ema_model"])
+                ema.load_state_dict(sd["ema"])
+            global_step, epoch = int(payload["pickles"]["global_step"]), int(payload["pickles"]["epoch"])
+            if "rng" in payload:
+                torch.set_rng_state(payload["rng"]["torch"].cpu())
+            log.info("resumed from %s at step %d, epoch %d", self.ckpt_path, global_step, epoch)
+
+        metrics = _JsonlLog(self.output_dir / "logs.jsonl")
+        amp = (torch.autocast(device_type=device.type, dtype=torch.bfloat16) if cfg.device.amp == "bf16"
+               else nullcontext())
+        summary: dict[str, Any] = {"output_dir": str(self.output_dir), "train_samples": len(train_set),
+                                   "val_samples": len(val_set), "start_step": global_step}
+        t0 = time.perf_counter()
+        epoch_done = True
+        try:
+            from tqdm.auto import tqdm
+
+            while epoch < t.num_epochs and (t.max_steps is None or global_step < t.max_steps):
+                policy.train()
+                losses = []
+                loader = self._loader(train_set, True, epoch)
+                epoch_done = True
+                bar = tqdm(loader, desc=f"epoch {epoch}", leave=False, disable=not t.progress_bar, mininterval=1.0)
+                for batch in bar:
+                    batch = _to_device(batch, device)
+                    with amp:
+                        loss = policy.compute_loss(batch)
+                    optimizer.zero_grad(set_to_none=True)
+                    loss.backward()
+                    if t.max_grad_norm:
+                        torch.nn.utils.clip_grad_norm_(policy.parameters(), t.max_grad_norm)
+                    optimizer.step()
+                    lr_sched.step()
+                    if ema is not None:
+                        ema.step(policy)
+                    global_step += 1
+                    lv = float(loss.detach())
+                    if not math.isfinite(lv):
+                        raise PolicyError(f"training diverged: loss {lv} at step {global_step}")
+                    losses.append(lv)
+                    bar.set_postfix(loss=f"{lv:.4f}", refresh=False)
+                    metrics.write({"step": global_step, "epoch": epoch, "train_loss": lv,
+                                   "lr": optimizer.param_groups[0]["lr"], "time": time.perf_counter() - t0})
+                    if t.max_steps is not None and global_step >= t.max_steps:
+                        epoch_done = len(losses) == len(loader)
+                        break
+                bar.close()
+                row: dict[str, Any] = {"epoch": epoch, "step": global_step,
+                                       "train_loss_epoch": float(np.mean(losses)) if losses else float("nan")}
+                last_epoch = (not epoch_done) or epoch + 1 >= t.num_epochs or (
+                    t.max_steps is not None and global_step >= t.max_steps)
+                if t.val_every and len(val_set) and ((epoch + 1) % t.val_every == 0 or last_epoch):
+                    row["val_loss"] = self.validate(policy, val_set, device)
+                eval_policy = ema.averaged_model if ema is not None else policy
+                if t.sample_every and ((epoch + 1) % t.sample_every == 0 or last_epoch):
+                    row["train_action_mse_error"] = self.action_mse(eval_policy, train_set, device)
+                if epoch_done:
+                    epoch += 1
+                metrics.write(row)
+                log.info("epoch %s", row)
+                summary.update(row)
+                if last_epoch or (t.checkpoint_every and epoch_done and epoch % t.checkpoint_every == 0):
+                    self.save(policy, ema, optimizer, lr_sched, global_step, epoch, epoch_done)
+        finally:
+            metrics.close()
+        summary.update({"global_step": global_step, "epochs_done": epoch, "wall_s": time.perf_counter() - t0,
+                        "checkpoint": str(self.ckpt_path) if self.ckpt_path.exists() else None})
+        return summary
+
+    def save(self, policy, ema, optimizer, lr_sched, global_step: int, epoch: int, epoch_done: bool) -> Path:
+        sd = {"model": policy.state_dict(), "optimizer": optimizer.state_dict(), "lr_scheduler": lr_sched.state_dict()}
+        if ema is not None:
+            sd["ema_model"] = ema.averaged_model.state_dict()
+            sd["ema"] = ema.state_dict()
+        return save_checkpoint(self.ckpt_path, {
+            "cfg": config_to_dict(self.cfg), "state_dicts": sd,
+            "pickles": {"global_step": global_step, "epoch": epoch, "epoch_done": epoch_done},
+            "rng": {"torch": torch.get_rng_state()}})
+
+    @torch.no_grad()
+    def validate(self, policy: DiffusionUnetPolicy, val_set: UmiPolicyDataset, device: torch.device) -> float:
+        policy.eval()
+        losses = []
+        g = torch.Generator().manual_seed(self.cfg.training.seed)
+        for i, batch in enumerate(self._loader(val_set, False)):
+            if self.cfg.training.max_val_steps is not None and i >= self.cfg.training.max_val_steps:
+                break
+            losses.append(float(policy.compute_loss(_to_device(batch, device), generator=g)))
+        policy.train()
+        return float(np.mean(losses)) if losses else float("nan")
+
+    @torch.no_grad()
+    def action_mse(self, policy: DiffusionUnetPolicy, ds: UmiPolicyDataset, device: torch.device) -> float:
+        """MSE between sampled and ground-truth (unnormalised) actions on the first training batch."""
+        was = policy.training
+        policy.eval()
+        batch = _to_device(next(iter(self._loader(ds, False))), device)
+        g = torch.Generator().manual_seed(self.cfg.training.seed)
+        pred = policy.predict_action(batch["obs"], generator=g)["action_pred"]
+        policy.train(was)
+        return float(torch.nn.functional.mse_loss(pred.float(), batch["action"].float()))
+
+
+def iter_jsonl(path: str | os.PathLike) -> Iterator[dict]:
+    """Rows of a ``logs.jsonl`` metrics file."""
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            if line.strip():
+                yield json.loads(line)
+
