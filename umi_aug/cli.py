@@ -38,8 +38,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     t.add_row("lens", f"KB model valid to θ = {summary['fold_over_deg']:.1f}° (fold-over); rays up to "
               f"{summary['max_theta_seen_deg']:.1f}° rendered; cube faces {', '.join(summary['cube_faces_rendered'])} "
               f"({summary['cube_face_size']}² px)")
-    t.add_row("new episodes", f"{summary['new_episodes']}: new approach for frames 0..{summary['splice_index']} "
-              f"(pre-grasp), original motion after (contact at {summary['contact_index']})")
+    t.add_row("new episodes", f"{summary['new_episodes']} optimised approaches into the demo's pre-grasp pose (frame "
+              f"{summary['splice_index']}; contact at {summary['contact_index']}), original motion after; "
+              f"{summary['new_frames_rendered']} new frames rendered")
+    t.add_row("trajectories", f"status {summary['trajectory_status_counts']}; min clearance "
+              f"{min(summary['min_clearance_mm']):.1f} mm (required ≥ {max(summary['required_clearance_mm']):.1f} mm); "
+              f"solver iterations {summary['solver_iterations']}")
     t.add_row("start rotations vs demo start", ", ".join(f"{a:.0f}°" for a in summary["start_rotation_from_demo_start_deg"]))
     t.add_row("dataset", f"{summary['dataset']} ({summary['dataset_episodes']} episodes, {summary['dataset_steps']} "
               "steps; validated)")
@@ -56,9 +60,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         s.add_row(row["stage"], f"[{colour}]{row['status']}[/{colour}]", row["what"])
     console.print(s)
     console.print(
-        "New camera paths are straight-line initial guesses (trajectory optimisation is not wired in yet) and new "
-        "frames come from the simulator's ground-truth scene (the 3DGS renderer is not wired in yet).\n"
-        f"Pictures: {cfg.out_dir}/contact_sheet.png, cone.png, lens.png, session/contact_sheet.png; "
+        "Trajectories avoid the simulator's exact scene geometry (the reconstructed distance field is not wired in "
+        "yet) and new frames come from the simulator's ground-truth scene (the 3DGS renderer is not wired in yet).\n"
+        f"Pictures: {cfg.out_dir}/contact_sheet.png, trajectories.png, lens.png, session/contact_sheet.png; "
         f"summary: {cfg.out_dir}/summary.json"
     )
     return 0

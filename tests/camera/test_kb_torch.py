@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
+import torch  # noqa: E402
 
 from tests.camera._kb_helpers import (  # noqa: E402
     angle_between,
@@ -168,3 +168,20 @@ def test_batched_and_integer_inputs(rng):
     uv_int = torch.tensor([[int(intr.cx), int(intr.cy)]])
     rays, v = kt.unproject(uv_int, intr)
     assert rays.dtype == torch.get_default_dtype() and v.all()
+
+
+def test_fused_project_with_jacobian_matches_separate_calls(rng):
+    """The fused projection + Jacobian used by the splatter equals project() and project_jacobian()."""
+    from umi_aug.camera import gopro_intrinsics_2_7k
+    from umi_aug.camera import kb_torch
+
+    intr = gopro_intrinsics_2_7k().umi_policy(224)
+    pts = torch.as_tensor(rng.normal(size=(500, 3)))
+    pts[:5] = torch.tensor([[0.0, 0, 1], [0, 0, -1], [0, 0, 0], [1e-9, 0, 1], [1, 0, -0.2]], dtype=pts.dtype)
+    uv, J, valid = kb_torch.project_with_jacobian(pts, intr)
+    uv_ref, valid_ref = kb_torch.project(pts, intr)
+    J_ref, valid_j = kb_torch.project_jacobian(pts, intr)
+    assert torch.equal(valid, valid_ref) and torch.equal(valid, valid_j)
+    torch.testing.assert_close(uv[valid], uv_ref[valid], rtol=0, atol=1e-12)
+    torch.testing.assert_close(J, J_ref, rtol=0, atol=0)
+    assert torch.isfinite(uv).all() and torch.isfinite(J).all()

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
+import torch  # noqa: E402
 
 from umi_aug.geometry import (  # noqa: E402
     matrix_to_quat_wxyz,

@@ -34,7 +34,7 @@ from umi_aug.errors import CameraError
 if TYPE_CHECKING:  # pragma: no cover
     from umi_aug.camera.intrinsics import FisheyeIntrinsics
 
-__all__ = ["project", "unproject", "project_jacobian", "kb_theta_d", "kb_dtheta_d", "kb_inverse_theta"]
+__all__ = ["project", "unproject", "project_jacobian", "project_with_jacobian", "kb_theta_d", "kb_dtheta_d", "kb_inverse_theta"]
 
 Tensor = torch.Tensor
 
@@ -257,9 +257,18 @@ def project(points_cam: Tensor, intr: "FisheyeIntrinsics") -> tuple[Tensor, Tens
     return torch.stack([u, v], dim=-1), valid
 
 
-def project_jacobian(points_cam: Tensor, intr: "FisheyeIntrinsics") -> tuple[Tensor, Tensor]:
-    """Analytic ``d(u, v)/d(x, y, z)`` ``[..., 2, 3]`` (pixels per length unit; zeros where invalid) and
-    ``valid [...]``; exact at ``r = 0`` and valid for ``z < 0``. Same formulas as the numpy version."""
+def project_with_jacobian(points_cam: Tensor, intr: "FisheyeIntrinsics") -> tuple[Tensor, Tensor, Tensor]:
+    """Fused :func:`project` + :func:`project_jacobian`: one normalisation and one evaluation of the radial
+    terms (what an EWA splatter needs per Gaussian).
+
+    Args:
+        points_cam: Tensor,  # [..., 3] OpenCV camera frame
+
+    Returns:
+        uv: Tensor,  # [..., 2] pixels (principal point where invalid)
+        J: Tensor,  # [..., 2, 3] d(u, v)/d(x, y, z), pixels per length unit (zeros where invalid)
+        valid: Tensor,  # [...] bool
+    """
     points_cam = _as_float_tensor(points_cam, "points_cam", 3)
     k = tuple(float(c) for c in intr.k)
     d, norm, ok = _normalise_points(points_cam)
@@ -273,10 +282,19 @@ def project_jacobian(points_cam: Tensor, intr: "FisheyeIntrinsics") -> tuple[Ten
     cxy = torch.where(series, x * y, x * y / r2_safe)
     cyy = torch.where(series, y * y, y * y / r2_safe)
     fx, fy = intr.fx, intr.fy
+    uv = torch.stack([fx * s * x + intr.cx, fy * s * y + intr.cy], dim=-1)
+    uv = torch.where(valid[..., None], uv, uv.new_tensor([intr.cx, intr.cy]))
     row_u = torch.stack([fx * (s + cxx * B), fx * cxy * B, fx * x * s_z], dim=-1)
     row_v = torch.stack([fy * cxy * B, fy * (s + cyy * B), fy * y * s_z], dim=-1)
     J = torch.stack([row_u, row_v], dim=-2) / norm[..., None, None]
     J = torch.where(valid[..., None, None], J, torch.zeros_like(J))
+    return uv, J, valid
+
+
+def project_jacobian(points_cam: Tensor, intr: "FisheyeIntrinsics") -> tuple[Tensor, Tensor]:
+    """Analytic ``d(u, v)/d(x, y, z)`` ``[..., 2, 3]`` (pixels per length unit; zeros where invalid) and
+    ``valid [...]``; exact at ``r = 0`` and valid for ``z < 0``. Same formulas as the numpy version."""
+    _, J, valid = project_with_jacobian(points_cam, intr)
     return J, valid
 
 

@@ -74,72 +74,30 @@ def lens_figure(intr, path: Path) -> Path:
     return _save(fig, path)
 
 
-def cone_figure(
-    T_world_ref: np.ndarray,  # [4, 4]
-    pivot: np.ndarray,  # [3]
-    T_world_goal: np.ndarray,  # [4, 4]
-    starts: np.ndarray,  # [N, 4, 4]
-    paths: np.ndarray,  # [N, T, 4, 4]
-    path: Path,
-    axis_len: float = 0.08,
-    demo_path: np.ndarray | None = None,  # [T, 4, 4] original demo camera poses
-) -> Path:
-    """3-D view of the sampled start poses (optical axes as arrows), the reference and goal views and the
-    straight-line camera paths."""
-    plt = _pyplot()
-    fig = plt.figure(figsize=(7, 6))
-    ax = fig.add_subplot(projection="3d")
-    p = starts[:, :3, 3]
-    z = starts[:, :3, 2]
-    ax.scatter(*p.T, c="tab:blue", s=18, label="sampled starts")
-    ax.quiver(*p.T, *(axis_len * z).T, color="tab:blue", lw=0.8)
-    for i, traj in enumerate(paths):
-        ax.plot(*traj[:, :3, 3].T, color="tab:gray", lw=0.7, label="new camera paths" if i == 0 else None)
-    if demo_path is not None:
-        ax.plot(*demo_path[:, :3, 3].T, color="tab:green", lw=1.5, label="original demo")
-    for T, c, name in ((T_world_ref, "tab:green", "demo start"), (T_world_goal, "tab:red", "splice (pre-grasp) pose")):
-        ax.scatter(*T[:3, 3], c=c, s=40, label=name)
-        ax.quiver(*T[:3, 3], *(axis_len * T[:3, 2]), color=c, lw=1.5)
-    ax.scatter(*pivot, c="k", marker="x", s=50, label="cone pivot (grasp point)")
-    pts = np.concatenate([p, paths[..., :3, 3].reshape(-1, 3), pivot[None], T_world_ref[None, :3, 3]]
-                         + ([demo_path[:, :3, 3]] if demo_path is not None else []))
-    span = np.ptp(pts, axis=0).max() / 2 + axis_len
-    mid = (pts.max(axis=0) + pts.min(axis=0)) / 2
-    ax.set_xlim(mid[0] - span, mid[0] + span)
-    ax.set_ylim(mid[1] - span, mid[1] + span)
-    ax.set_zlim(mid[2] - span, mid[2] + span)
-    ax.set_box_aspect((1, 1, 1))  # equal metric scale on all axes
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_zlabel("z [m]")
-    ax.legend(fontsize=8, loc="upper left")
-    ax.set_title("start poses in the quaternion cone (arrows: optical axis)")
-    return _save(fig, path)
-
-
 def contact_sheet(
-    frames: np.ndarray,  # [E, T, H, W, 3] uint8
+    episodes: list[np.ndarray],  # E × [T_e, H, W, 3] uint8 (episodes may differ in length)
     path: Path,
     n_cols: int = 7,
-    splice_index: int | None = None,
+    splice_indices: list[int] | None = None,
     row_names: list[str] | None = None,
 ) -> Path:
-    """Grid of fisheye frames: one row per episode, ``n_cols`` frames evenly spaced in time up to and
-    including ``splice_index`` (frames after it are the original ones), then the last frame."""
+    """Grid of frames: one row per episode, ``n_cols − 1`` frames evenly spaced in time up to and including the
+    row's splice index (after it the frames are the original ones), then the row's last frame."""
     plt = _pyplot()
-    n_ep, n_t = frames.shape[:2]
-    last_new = n_t - 1 if splice_index is None else splice_index
-    cols = list(np.linspace(0, last_new, min(n_cols - 1, last_new + 1)).round().astype(int)) + [n_t - 1]
-    fig, axes = plt.subplots(n_ep, len(cols), figsize=(1.9 * len(cols), 1.9 * n_ep), squeeze=False)
-    for e in range(n_ep):
+    n_ep = len(episodes)
+    fig, axes = plt.subplots(n_ep, n_cols, figsize=(1.9 * n_cols, 2.0 * n_ep), squeeze=False)
+    for e, frames in enumerate(episodes):
+        n_t = len(frames)
+        last_new = n_t - 1 if splice_indices is None else int(splice_indices[e])
+        cols = list(np.linspace(0, last_new, n_cols - 1).round().astype(int)) + [n_t - 1]
         for j, k in enumerate(cols):
-            axes[e, j].imshow(frames[e, k])
-            axes[e, j].set_xticks([])
-            axes[e, j].set_yticks([])
-            if e == 0:
-                tag = " (splice)" if k == splice_index else (" (end)" if k == n_t - 1 else "")
-                axes[e, j].set_title(f"t={k}{tag}", fontsize=8)
+            a = axes[e, j]
+            a.imshow(frames[k])
+            a.set_xticks([])
+            a.set_yticks([])
+            tag = " splice" if splice_indices is not None and k == last_new else (" end" if k == n_t - 1 else "")
+            a.set_title(f"t={k}{tag}", fontsize=7)
         axes[e, 0].set_ylabel(row_names[e] if row_names else f"ep {e}", fontsize=8)
-    fig.suptitle("policy images (224², UMI layout): original demo and new episodes from cone-sampled starts",
-                 fontsize=9)
+    fig.suptitle("policy images (224², UMI layout): original demo and new episodes (new frames up to the splice, "
+                 "original frames after it)", fontsize=9)
     return _save(fig, path)

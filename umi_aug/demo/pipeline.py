@@ -4,16 +4,17 @@ Today:
 
 1. **sim** — a synthetic UMI session of the built-in MuJoCo tabletop (mapping scan + one mug→plate demo,
    rendered through the true GoPro fisheye, with ground truth): :func:`umi_aug.sim.session.make_session`.
-2. **geometry** — new start poses sampled in the paper's quaternion cone around the demo's first view
-   (θ = 50° by default), and straight-line (slerp + lerp, eased) camera paths from each start to the demo's
-   pre-grasp pose. These are the *initial guess* of the trajectory optimiser, which is not built yet: no
-   collision check beyond keeping the camera above the table.
-3. **camera** — the pre-contact frames of each new episode rendered through the Kannala–Brandt fisheye (cube faces
-   + remap) and turned into UMI policy images (gripper mask, crop, INTER_AREA); the post-contact part is the
-   original motion, so its frames are the original frames (nothing re-rendered). The renderer is the
-   simulator's ground-truth scene, standing in for the 3DGS renderer that is not built yet.
+2. **traj** (+ geometry) — new start poses sampled in the paper's quaternion cone (θ = 50°, r = 0.15 m) around the
+   demo's first view; batched SE(3) trajectory optimisation (funnel, gripper-sphere collision, render prior,
+   smoothness; fixed ends) into the demo's pre-grasp pose, validated, retimed and spliced onto the original
+   post-grasp motion. The scene's distance field is the simulator's exact one (:mod:`umi_aug.sim.scene_sdf`),
+   standing in for the reconstructed one that is not wired in yet.
+3. **camera** — the new pre-grasp frames of each episode rendered through the Kannala–Brandt fisheye (cube faces
+   + remap) and turned into UMI policy images (gripper mask, crop, INTER_AREA); the rest is the original motion,
+   so its frames are the original frames (nothing re-rendered). The renderer is the simulator's ground-truth
+   scene, standing in for the 3DGS renderer that is not wired in yet.
 4. **data** — one UMI ``dataset.zarr.zip`` with the original and the new episodes, validated and read back.
-5. Pictures: the sampled cone, a contact sheet original vs. new episodes, the lens geometry.
+5. Pictures: the trajectories, a contact sheet original vs. new episodes, the lens geometry.
 
 Stages that are not built yet are listed as such; nothing is faked.
 """
@@ -46,10 +47,7 @@ STAGES: tuple[tuple[str, str, str], ...] = (
 )
 
 #: Stages this demo actually runs today.
-STAGES_RUN_BY_DEMO = frozenset({"geometry", "camera", "data", "sim"})
-
-#: Lowest camera height above the table top (world z, metres) accepted for a sampled start pose.
-MIN_START_HEIGHT_M = 0.10
+STAGES_RUN_BY_DEMO = frozenset({"geometry", "camera", "data", "sim", "traj"})
 
 
 @dataclass(frozen=True)
@@ -61,6 +59,7 @@ class DemoConfig:
     n_episodes: int = 4
     scan_frames: int = 120
     cone_half_angle_deg: float = 50.0
+    cone_radius_m: float = 0.15
     max_extra_rotation_deg: float = 10.0
     policy_size: int = 224
 
@@ -81,12 +80,6 @@ def stage_status() -> list[tuple[str, str, str]]:
     return rows
 
 
-def _ease(n: int) -> np.ndarray:
-    """``n`` path parameters in [0, 1] with zero velocity at both ends (smoothstep)."""
-    t = np.linspace(0.0, 1.0, n)
-    return t * t * (3.0 - 2.0 * t)
-
-
 def run_demo(cfg: DemoConfig) -> dict:
     """Run the demo; returns a summary dict (also written to ``out_dir/summary.json``)."""
     from tqdm import tqdm
@@ -95,18 +88,15 @@ def run_demo(cfg: DemoConfig) -> dict:
     from umi_aug.camera.umi_image import umi_policy_image
     from umi_aug.data import ReplayBuffer, make_umi_episode, validate_replay_buffer
     from umi_aug.demo import pictures
-    from umi_aug.geometry import (
-        interpolate_pose,
-        rotation_geodesic_distance,
-        sample_cone_start_poses,
-        tcp_poses_from_camera_poses,
-    )
+    from umi_aug.geometry import rotation_geodesic_distance
     from umi_aug.sim.fisheye_renderer import FisheyeRenderer
     from umi_aug.sim.gl import import_mujoco
     from umi_aug.sim.raster import RasterOptions
     from umi_aug.sim.scene import SCENE_FAR, SCENE_NEAR
+    from umi_aug.sim.scene_sdf import scene_sdf
     from umi_aug.sim.session import make_session
     from umi_aug.sim.tabletop_state import TabletopState
+    from umi_aug.traj import Demonstration, TrajProblem, TrajScene, generate, plot_trajectories
 
     timings: dict[str, float] = {}
     out = Path(cfg.out_dir)
@@ -130,52 +120,52 @@ def run_demo(cfg: DemoConfig) -> dict:
     contact = int(events["contact"])
     original = ReplayBuffer.open(session_dir / "dataset.zarr.zip").get_episode(0)
 
-    # 2. geometry: cone-sampled starts and straight-line paths to the pre-grasp pose --------------------------
-    t0 = time.perf_counter()
-    T_start, T_goal = T_demo[0], T_demo[goal]
-    pivot = tcp_poses_from_camera_poses(T_demo[contact])[:3, 3]  # the grasp point on the handle
-    starts: list[np.ndarray] = []
-    for _ in range(100):
-        cand = sample_cone_start_poses(T_start, pivot, np.deg2rad(cfg.cone_half_angle_deg), cfg.n_episodes, rng,
-                                       max_extra_rotation=np.deg2rad(cfg.max_extra_rotation_deg))
-        starts += [T for T in cand if T[2, 3] >= MIN_START_HEIGHT_M]
-        if len(starts) >= cfg.n_episodes:
-            break
-    starts_arr = np.stack(starts[: cfg.n_episodes])
-    s = _ease(goal + 1)
-    paths = np.stack([interpolate_pose(T0[None], T_goal[None], s) for T0 in starts_arr])  # [E, goal+1, 4, 4]
-    timings["sample_and_interpolate_s"] = time.perf_counter() - t0
-
-    # 3. camera: render only the new pre-contact frames ------------------------------------------------------
-    t0 = time.perf_counter()
     mujoco = import_mujoco()
     model = mujoco.MjModel.from_xml_path(str(session_dir / "ground_truth" / "scene" / "scene.xml"))
     intr = load_umi_intrinsics_json(next((session_dir / "calibration").glob("gopro_intrinsics_*x*.json")))
     state = TabletopState(model)
-    new_frames = np.zeros((cfg.n_episodes, goal + 1, cfg.policy_size, cfg.policy_size, 3), np.uint8)
+
+    # 2. traj: cone-sampled starts, optimised trajectories into the pre-grasp pose, spliced -------------------
+    t0 = time.perf_counter()
+    state.set(T_demo[0], float(widths[0]), T_mug[0])  # the scene before contact: mug at its start pose
+    scan_poses = np.load(session_dir / "ground_truth" / "mapping" / "trajectory.npz")["T_world_cam"]
+    problem = TrajProblem(
+        Demonstration(T_world_cam=T_demo, timestamps=gt["timestamp"], gripper_width=widths, contact_index=goal),
+        TrajScene(sdf=scene_sdf(model, state.data), render_views=np.concatenate([scan_poses, T_demo[: goal + 1]])),
+    )
+    result = generate(problem, cfg.n_episodes, seed=cfg.seed, half_angle=np.deg2rad(cfg.cone_half_angle_deg),
+                      radius=cfg.cone_radius_m, max_extra_rotation=np.deg2rad(cfg.max_extra_rotation_deg))
+    episodes = result.episodes
+    timings["trajectory_generation_s"] = time.perf_counter() - t0
+
+    # 3. camera: render only the new pre-grasp frames --------------------------------------------------------
+    t0 = time.perf_counter()
+    new_frames: list[np.ndarray] = []
     with FisheyeRenderer(model, intr, options=RasterOptions(near=SCENE_NEAR, far=SCENE_FAR)) as renderer:
         remapper = renderer.cubemap
-        with tqdm(total=new_frames.shape[0] * new_frames.shape[1], desc="render new pre-contact frames",
+        with tqdm(total=sum(ep.splice_index for ep in episodes), desc="render new pre-grasp frames",
                   unit="frame") as bar:
-            for e in range(cfg.n_episodes):
-                for k in range(goal + 1):
-                    state.set(paths[e, k], float(widths[k]), T_mug[k])
-                    frame = renderer.render(paths[e, k], state.data, rgb=True, depth=False)
-                    new_frames[e, k] = umi_policy_image(frame.rgb, intr, cfg.policy_size)
+            for ep in episodes:
+                if not np.array_equal(ep.T_world_cam[ep.splice_index:], T_demo[ep.source_contact_index:]):
+                    raise RuntimeError("spliced episode does not replay the original motion after the splice")
+                frames = np.zeros((ep.splice_index, cfg.policy_size, cfg.policy_size, 3), np.uint8)
+                for k in range(ep.splice_index):
+                    state.set(ep.T_world_cam[k], float(ep.gripper_width[k]), T_mug[0])
+                    frame = renderer.render(ep.T_world_cam[k], state.data, rgb=True, depth=False)
+                    frames[k] = umi_policy_image(frame.rgb, intr, cfg.policy_size)
                     bar.update(1)
+                new_frames.append(frames)
+    n_rendered = sum(len(f) for f in new_frames)
     timings["render_s"] = time.perf_counter() - t0
-    timings["render_ms_per_frame"] = 1e3 * timings["render_s"] / new_frames[:, :, 0, 0, 0].size
+    timings["render_ms_per_frame"] = 1e3 * timings["render_s"] / max(1, n_rendered)
 
     # 4. data: original + new episodes in one UMI replay buffer ---------------------------------------------
     t0 = time.perf_counter()
     buf = ReplayBuffer.create()
     buf.add_episode(original)
-    episodes_cam = []
-    for e in range(cfg.n_episodes):
-        T_world_cam = np.concatenate([paths[e], T_demo[goal + 1 :]])
-        episodes_cam.append(T_world_cam)
-        images = np.concatenate([new_frames[e], original["camera0_rgb"][goal + 1 :]])
-        buf.add_episode(make_umi_episode(tcp_poses_from_camera_poses(T_world_cam), widths, images={0: images}))
+    for ep, frames in zip(episodes, new_frames):
+        images = np.concatenate([frames, original["camera0_rgb"][ep.source_contact_index :]])
+        buf.add_episode({**ep.umi_episode(), "camera0_rgb": images})
     zarr_path = out / "dataset.zarr.zip"
     buf.save(zarr_path)
     report = validate_replay_buffer(zarr_path)
@@ -185,15 +175,20 @@ def run_demo(cfg: DemoConfig) -> dict:
     t0 = time.perf_counter()
     reread = ReplayBuffer.open(zarr_path)
     sheet_eps = [reread.get_episode(i, keys=["camera0_rgb"])["camera0_rgb"] for i in range(reread.n_episodes)]
-    pictures.contact_sheet(np.stack(sheet_eps), out / "contact_sheet.png", splice_index=goal,
-                           row_names=["original"] + [f"new {e}" for e in range(cfg.n_episodes)])
-    pictures.cone_figure(T_start, pivot, T_goal, starts_arr, np.stack(episodes_cam), out / "cone.png",
-                         demo_path=T_demo)
+    pictures.contact_sheet(sheet_eps, out / "contact_sheet.png",
+                           splice_indices=[goal] + [ep.splice_index for ep in episodes],
+                           row_names=["original"] + [f"new {e}" for e in range(len(episodes))])
+    plot_trajectories(out / "trajectories.png", problem, episodes,
+                      title=f"{len(episodes)} optimised trajectories from a {cfg.cone_half_angle_deg:.0f}° cone "
+                            f"(r = {cfg.cone_radius_m} m) into the demo's pre-grasp pose")
     pictures.lens_figure(intr.umi_policy(cfg.policy_size), out / "lens.png")
     timings["pictures_s"] = time.perf_counter() - t0
 
-    start_angles = np.degrees(rotation_geodesic_distance(starts_arr[:, :3, :3], T_start[:3, :3]))
-    start_dist = np.linalg.norm(starts_arr[:, :3, 3] - T_start[:3, 3], axis=-1)
+    T_start = T_demo[0]
+    starts = np.stack([ep.T_world_cam[0] for ep in episodes])
+    start_angles = np.degrees(rotation_geodesic_distance(starts[:, :3, :3], T_start[:3, :3]))
+    start_dist = np.linalg.norm(starts[:, :3, 3] - T_start[:3, 3], axis=-1)
+    reports = result.reports
     policy_intr = intr.umi_policy(cfg.policy_size)
     coverage = remapper.coverage_report()
     summary = {
@@ -209,7 +204,13 @@ def run_demo(cfg: DemoConfig) -> dict:
         "demo": demo_name,
         "splice_index": goal,
         "contact_index": contact,
-        "new_episodes": cfg.n_episodes,
+        "new_episodes": len(episodes),
+        "new_frames_rendered": n_rendered,
+        "trajectory_status_counts": dict(result.status_counts),
+        "min_clearance_mm": [round(1e3 * r.min_clearance, 1) for r in reports],
+        "required_clearance_mm": [round(1e3 * r.required_clearance, 1) for r in reports],
+        "solver_iterations": [int(r.iterations) for r in reports],
+        "solve_ms": [round(1e3 * r.solve_time_s, 1) for r in reports],
         "start_rotation_from_demo_start_deg": [round(float(a), 1) for a in start_angles],
         "start_distance_from_demo_start_m": [round(float(d), 3) for d in start_dist],
         "dataset": str(zarr_path),

@@ -21,6 +21,9 @@ from umi_aug.geometry._constants import (
 )
 
 __all__ = [
+    "so3_exp_unchecked",
+    "so3_log_unchecked",
+    "so3_left_jacobian_inv_unchecked",
     "hat",
     "vee",
     "so3_exp",
@@ -243,3 +246,20 @@ def project_to_rotation(M: np.ndarray) -> np.ndarray:
     U = U.copy()
     U[..., :, 2] *= d[..., None]
     return U @ Vt
+
+
+# Fast paths for inner loops whose inputs are already validated (float64, finite, shape [..., 3] / [..., 3, 3]):
+# the same kernels as the public functions, without the per-call shape/finiteness checks.
+def so3_exp_unchecked(rotvec: np.ndarray) -> np.ndarray:
+    """:func:`so3_exp` without input validation; ``rotvec`` must be finite float64 ``[..., 3]``."""
+    return _so3_exp(rotvec)
+
+
+def so3_log_unchecked(R: np.ndarray) -> np.ndarray:
+    """:func:`so3_log` without input validation; ``R`` must be a finite float64 rotation ``[..., 3, 3]``."""
+    return _so3_log(R)
+
+
+def so3_left_jacobian_inv_unchecked(phi: np.ndarray) -> np.ndarray:
+    """:func:`so3_left_jacobian_inv` without shape/finiteness validation (angles ≥ 2π still raise)."""
+    return _left_jacobian_inv(phi)

@@ -1,0 +1,778 @@
+"""numba kernels of the CPU splatting fast path: KB projection, tile binning, forward and backward rasterisation.
+
+All kernels are ``@njit(cache=True)``; the heavy ones are ``parallel=True`` (``prange`` over Gaussians or over
+16x16 tiles). The dense float64 torch reference in :mod:`umi_aug.splat._torch_impl` is the oracle they are
+tested against.
+
+Data layout (one row per Gaussian, 64 bytes in float32 = one cache line)::
+
+    packed[g] = (u, v, conic_a, conic_b, conic_c, opacity, r, g, b, ray_depth,      # columns 0..9: the data
+                 lim, hy, gamma, beta, 1/a, hx)                                    # columns 10..15: footprint
+
+``(u, v)`` is the projected mean in pixels (pixel centres at integers), ``conic = Sigma_2D^-1 = [[a, b], [b, c]]``,
+``opacity`` includes the Mip compensation, ``lim = 2 ln(opacity / ALPHA_THRESHOLD)`` bounds the footprint
+(``alpha >= ALPHA_THRESHOLD`` only where ``d^T conic d <= lim``), ``hx``, ``hy`` its half-extents in pixels.
+The rasteriser evaluates the quadratic form in the completed-square form
+``q = a (dx + beta dy)^2 + gamma dy^2`` (``beta = b/a = -Sxy/Syy``, ``gamma = (ac - b^2)/a = 1/Syy``), which
+has no cancellation, so needle-thin footprints (10^6 axis ratios) keep their shape in float32; each row's pixel
+span is ``|dx + beta dy| <= sqrt((lim - gamma dy^2) / a)``. The numba projection derives columns 10..15 from
+the float64 covariance (determinant by Cauchy–Binet); :func:`footprint_kernel` derives them from a conic.
+
+``exp`` in float32 kernels is :func:`fexp` (table of 2^(-k/16) + cubic, relative error < 2e-7, short
+dependency chain; libm's expf was a third of the rasteriser's time); float64 kernels use ``np.exp``.
+
+The rasteriser works in the dtype of ``packed`` (float32 for speed, float64 for the reference comparisons); its
+constants come in the ``cst`` array of that dtype so that float32 arithmetic stays float32. No fastmath in the
+rasteriser: the backward re-evaluates every (Gaussian, pixel) pair with the same instructions as the forward, so
+the skip decisions (alpha < 1/255) and the transmittance it reconstructs are bit-identical. (The projection,
+which is never replayed, uses a fastmath subset without ``nnan``/``ninf``, so its NaN/inf culling still holds.)
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange, types
+from numba.extending import overload
+
+from umi_aug.camera.kb import MIN_POINT_NORM, SMALL_T, THETA_MAX_SLACK
+from umi_aug.splat._constants import (
+    ALPHA_THRESHOLD,
+    BBOX_MARGIN_PX,
+    BBOX_MARGIN_REL,
+    LOG_INV_ALPHA_THRESHOLD,
+    MAX_ALPHA,
+    MIN_DET_2D_ABS,
+    MIN_DET_2D_REL,
+    SH_C0,
+    SH_C1,
+    SH_C2,
+    SH_C3,
+    TILE_SIZE,
+    TRANSMITTANCE_THRESHOLD,
+)
+
+#: Number of columns of the packed per-Gaussian array.
+PACKED_COLS = 16
+#: Number of per-Gaussian gradient columns: d/d(u, v, a, b, c, opacity, r, g, b, ray_depth).
+GRAD_COLS = 10
+
+_TS = TILE_SIZE
+_C2_0, _C2_1, _C2_2, _C2_3, _C2_4 = SH_C2
+_C3_0, _C3_1, _C3_2, _C3_3, _C3_4, _C3_5, _C3_6 = SH_C3
+
+
+#: float32 ``exp`` on ``[FEXP_MIN, 0]``: ``exp(x) = 2^(-k/16) * p(r)`` with ``k = round(-16 x / ln 2)``,
+#: ``|r| <= ln2/32`` and a cubic ``p`` (relative error < 2e-7, four dependent multiply-adds after the table
+#: look-up). Arguments below ``FEXP_MIN`` (and NaN) are clamped to it: ``exp(-16) < 1.2e-7`` is far below any
+#: alpha that passes the 1/255 threshold, so no compositing decision changes.
+FEXP_MIN = -16.0
+_FEXP_STEPS = 16
+_LN2_16_HI = 0.0433197021484375  # ln(2)/16 split for Cody-Waite reduction (hi: 14 significant bits, k*hi exact)
+_LN2_16_LO = 1.996636559080389e-06
+_FEXP_TABLE = np.array([2.0 ** (-k / _FEXP_STEPS) for k in range(int(-FEXP_MIN * _FEXP_STEPS / math.log(2)) + 2)],
+                       dtype=np.float32)
+
+
+def fexp(x):  # pragma: no cover - replaced by the overload inside numba
+    """``exp(x)`` for ``x <= 0`` (python fallback; compiled versions below)."""
+    return np.exp(x)
+
+
+@overload(fexp, inline="always")
+def _fexp_overload(x):  # pragma: no cover - compiled
+    if x == types.float32:
+        def impl(x):
+            if not (x > np.float32(FEXP_MIN)):
+                x = np.float32(FEXP_MIN)
+            if x > np.float32(0.0):
+                x = np.float32(0.0)
+            k = np.int32(x * np.float32(-_FEXP_STEPS / math.log(2.0)) + np.float32(0.5))  # round(-x 16/ln2) >= 0
+            kf = np.float32(k)
+            r = (x + kf * np.float32(_LN2_16_HI)) + kf * np.float32(_LN2_16_LO)
+            p = np.float32(1.0) + r * (np.float32(1.0) + r * (np.float32(0.5) + r * np.float32(1.0 / 6.0)))
+            return _FEXP_TABLE[k] * p
+        return impl
+    return lambda x: np.exp(x)
+
+
+def raster_constants(dtype) -> np.ndarray:
+    """The ``cst`` array of the rasteriser in its working dtype."""
+    return np.array([MAX_ALPHA, ALPHA_THRESHOLD, TRANSMITTANCE_THRESHOLD, 1.0, 0.5, 0.0], dtype=dtype)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Kannala–Brandt projection and Jacobian of one camera-frame point (float64; same formulas as camera.kb)
+# ------------------------------------------------------------------------------------------------------------
+@njit(cache=True)
+def _kb_project_jacobian(px, py, pz, fx, fy, cx, cy, k1, k2, k3, k4):
+    """Returns ``ok, theta, u, v, j00, j01, j02, j10, j11, j12`` (``d(u,v)/d(x,y,z)``, exact at ``r = 0``)."""
+    m = max(abs(px), max(abs(py), abs(pz)))
+    if not (m > MIN_POINT_NORM) or not math.isfinite(m):
+        return False, 0.0, cx, cy, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    qx, qy, qz = px / m, py / m, pz / m
+    n = math.sqrt(qx * qx + qy * qy + qz * qz)
+    x, y, z = qx / n, qy / n, qz / n
+    norm = m * n
+    r2 = x * x + y * y
+    r = math.sqrt(r2)
+    theta = math.atan2(r, z)
+    if z > 0.0 and r <= SMALL_T * z:
+        # series branch: q = r^2/z^2, a = atan(t)/t, G(q) = a P(q a^2); exact r -> 0 limit
+        q = r2 / (z * z)
+        a = 1.0 + q * (-1.0 / 3.0 + q * (1.0 / 5.0 + q * (-1.0 / 7.0 + q * (1.0 / 9.0))))
+        da = -1.0 / 3.0 + q * (2.0 / 5.0 + q * (-3.0 / 7.0 + q * (4.0 / 9.0)))
+        w = q * a * a
+        P = 1.0 + w * (k1 + w * (k2 + w * (k3 + w * k4)))
+        dP = k1 + w * (2.0 * k2 + w * (3.0 * k3 + w * 4.0 * k4))
+        G = a * P
+        s = G / z
+        dG = da * P + a * dP * (a * a + 2.0 * q * a * da)
+        B = 2.0 * dG / (z * z * z)
+        s_z = -(G + 2.0 * q * dG) / (z * z)
+        cxx, cxy, cyy = x * x, x * y, y * y
+    else:
+        rd = r if r > 0.0 else 1.0
+        t2 = theta * theta
+        td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        dtd = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
+        s = td / rd
+        rho2 = r2 + z * z
+        A = (dtd * z / rho2 - td / rd) / (rd * rd)
+        s_z = -dtd / rho2
+        B = A * r2
+        r2s = r2 if r2 > 0.0 else 1.0
+        cxx, cxy, cyy = x * x / r2s, x * y / r2s, y * y / r2s
+    u = fx * s * x + cx
+    v = fy * s * y + cy
+    j00 = fx * (s + cxx * B) / norm
+    j01 = fx * cxy * B / norm
+    j02 = fx * x * s_z / norm
+    j10 = fy * cxy * B / norm
+    j11 = fy * (s + cyy * B) / norm
+    j12 = fy * y * s_z / norm
+    return True, theta, u, v, j00, j01, j02, j10, j11, j12
+
+
+@njit(parallel=True, cache=True, fastmath={"nsz", "arcp", "contract", "afn"})
+def project_kernel(
+    means, log_scales, quats, logit_op, sh0, sh_rest, sh_degree,
+    Rcw, tcw, campos, cam, near, far, dilation, compensate, width, height,
+    packed, uv_out, depth_out, valid_out, counts_out,
+):  # pragma: no cover - compiled
+    """EWA projection of every Gaussian through the full KB model, culling and SH colour.
+
+    ``cam = (fx, fy, cx, cy, k1, k2, k3, k4, theta_max)``. Writes ``packed [N, 16]`` (any float dtype),
+    ``uv_out [N, 2]`` float64 projected means, ``depth_out [N]`` float64 ray distance (for sorting),
+    ``valid_out [N]`` bool and ``counts_out [N]`` the number of tiles each footprint reaches (as
+    :func:`count_tiles_kernel`, fused here to save a parallel region).
+    """
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    k1, k2, k3, k4, theta_max = cam[4], cam[5], cam[6], cam[7], cam[8]
+    n_rest = sh_rest.shape[1]
+    dummy = np.empty(0, dtype=np.int64)
+    for i in prange(means.shape[0]):
+        valid_out[i] = False
+        counts_out[i] = 0
+        depth_out[i] = 0.0
+        uv_out[i, 0] = 0.0
+        uv_out[i, 1] = 0.0
+        for col in range(packed.shape[1]):
+            packed[i, col] = 0.0
+        mx, my, mz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+        px = Rcw[0, 0] * mx + Rcw[0, 1] * my + Rcw[0, 2] * mz + tcw[0]
+        py = Rcw[1, 0] * mx + Rcw[1, 1] * my + Rcw[1, 2] * mz + tcw[1]
+        pz = Rcw[2, 0] * mx + Rcw[2, 1] * my + Rcw[2, 2] * mz + tcw[2]
+        depth = math.sqrt(px * px + py * py + pz * pz)
+        if not (depth > near and depth < far):
+            continue
+        ok, theta, u, v, j00, j01, j02, j10, j11, j12 = _kb_project_jacobian(
+            px, py, pz, fx, fy, cx, cy, k1, k2, k3, k4
+        )
+        if not ok or not (theta <= theta_max + THETA_MAX_SLACK):
+            continue
+        # rotation of the Gaussian (normalised quaternion; zero -> identity)
+        qw, qx, qy, qz = (np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
+                          np.float64(quats[i, 3]))
+        qn2 = qw * qw + qx * qx + qy * qy + qz * qz
+        if qn2 > 0.0 and math.isfinite(qn2):
+            qn = math.sqrt(qn2)
+            qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
+        else:
+            qw, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
+        r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
+        r01 = 2.0 * (qx * qy - qw * qz)
+        r02 = 2.0 * (qx * qz + qw * qy)
+        r10 = 2.0 * (qx * qy + qw * qz)
+        r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
+        r12 = 2.0 * (qy * qz - qw * qx)
+        r20 = 2.0 * (qx * qz - qw * qy)
+        r21 = 2.0 * (qy * qz + qw * qx)
+        r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+        s0 = math.exp(np.float64(log_scales[i, 0]))
+        s1 = math.exp(np.float64(log_scales[i, 1]))
+        s2 = math.exp(np.float64(log_scales[i, 2]))
+        # W = J Rcw (2x3), then JM = W R diag(s)
+        w00 = j00 * Rcw[0, 0] + j01 * Rcw[1, 0] + j02 * Rcw[2, 0]
+        w01 = j00 * Rcw[0, 1] + j01 * Rcw[1, 1] + j02 * Rcw[2, 1]
+        w02 = j00 * Rcw[0, 2] + j01 * Rcw[1, 2] + j02 * Rcw[2, 2]
+        w10 = j10 * Rcw[0, 0] + j11 * Rcw[1, 0] + j12 * Rcw[2, 0]
+        w11 = j10 * Rcw[0, 1] + j11 * Rcw[1, 1] + j12 * Rcw[2, 1]
+        w12 = j10 * Rcw[0, 2] + j11 * Rcw[1, 2] + j12 * Rcw[2, 2]
+        a0 = (w00 * r00 + w01 * r10 + w02 * r20) * s0
+        a1 = (w00 * r01 + w01 * r11 + w02 * r21) * s1
+        a2 = (w00 * r02 + w01 * r12 + w02 * r22) * s2
+        b0 = (w10 * r00 + w11 * r10 + w12 * r20) * s0
+        b1 = (w10 * r01 + w11 * r11 + w12 * r21) * s1
+        b2 = (w10 * r02 + w11 * r12 + w12 * r22) * s2
+        sxx0 = a0 * a0 + a1 * a1 + a2 * a2
+        sxy = a0 * b0 + a1 * b1 + a2 * b2
+        syy0 = b0 * b0 + b1 * b1 + b2 * b2
+        m01 = a0 * b1 - a1 * b0
+        m02 = a0 * b2 - a2 * b0
+        m12 = a1 * b2 - a2 * b1
+        det0 = m01 * m01 + m02 * m02 + m12 * m12  # Cauchy-Binet: exact sign, no cancellation
+        sxx = sxx0 + dilation
+        syy = syy0 + dilation
+        det = det0 + dilation * (sxx0 + syy0) + dilation * dilation
+        half_tr = 0.5 * (sxx + syy)
+        if not (det > MIN_DET_2D_ABS and det > MIN_DET_2D_REL * half_tr * half_tr and math.isfinite(det)):
+            continue
+        lo = np.float64(logit_op[i])
+        if lo >= 0.0:
+            op = 1.0 / (1.0 + math.exp(-lo))
+        else:
+            el = math.exp(lo)
+            op = el / (1.0 + el)
+        if compensate:
+            op = op * math.sqrt(det0 / det)
+        if not (op >= ALPHA_THRESHOLD):
+            continue
+        lim = 2.0 * (math.log(op) + LOG_INV_ALPHA_THRESHOLD)
+        hx = math.sqrt(lim * sxx) * (1.0 + BBOX_MARGIN_REL) + BBOX_MARGIN_PX
+        hy = math.sqrt(lim * syy) * (1.0 + BBOX_MARGIN_REL) + BBOX_MARGIN_PX
+        if u + hx < 0.0 or u - hx > width - 1.0 or v + hy < 0.0 or v - hy > height - 1.0:
+            continue
+        # SH colour, view direction from the camera centre (world frame)
+        dx_, dy_, dz_ = mx - campos[0], my - campos[1], mz - campos[2]
+        dn = math.sqrt(dx_ * dx_ + dy_ * dy_ + dz_ * dz_)
+        if dn > 0.0:
+            dx_, dy_, dz_ = dx_ / dn, dy_ / dn, dz_ / dn
+        else:
+            dx_, dy_, dz_ = 0.0, 0.0, 1.0
+        deg = min(sh_degree, 3)
+        if deg >= 3 and n_rest < 15:
+            deg = 2
+        if deg >= 2 and n_rest < 8:
+            deg = 1
+        if deg >= 1 and n_rest < 3:
+            deg = 0
+        xx, yy, zz = dx_ * dx_, dy_ * dy_, dz_ * dz_
+        xy, yz, xz = dx_ * dy_, dy_ * dz_, dx_ * dz_
+        y1_0, y1_1, y1_2 = -SH_C1 * dy_, SH_C1 * dz_, -SH_C1 * dx_
+        y2_0, y2_1, y2_2, y2_3, y2_4 = (
+            _C2_0 * xy, _C2_1 * yz, _C2_2 * (2.0 * zz - xx - yy), _C2_3 * xz, _C2_4 * (xx - yy)
+        )
+        y3_0 = _C3_0 * dy_ * (3.0 * xx - yy)
+        y3_1 = _C3_1 * xy * dz_
+        y3_2 = _C3_2 * dy_ * (4.0 * zz - xx - yy)
+        y3_3 = _C3_3 * dz_ * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+        y3_4 = _C3_4 * dx_ * (4.0 * zz - xx - yy)
+        y3_5 = _C3_5 * dz_ * (xx - yy)
+        y3_6 = _C3_6 * dx_ * (xx - 3.0 * yy)
+        for ch in range(3):
+            c = SH_C0 * np.float64(sh0[i, ch])
+            if deg >= 1:
+                c += y1_0 * sh_rest[i, 0, ch] + y1_1 * sh_rest[i, 1, ch] + y1_2 * sh_rest[i, 2, ch]
+            if deg >= 2:
+                c += (
+                    y2_0 * sh_rest[i, 3, ch] + y2_1 * sh_rest[i, 4, ch] + y2_2 * sh_rest[i, 5, ch]
+                    + y2_3 * sh_rest[i, 6, ch] + y2_4 * sh_rest[i, 7, ch]
+                )
+            if deg >= 3:
+                c += (
+                    y3_0 * sh_rest[i, 8, ch] + y3_1 * sh_rest[i, 9, ch] + y3_2 * sh_rest[i, 10, ch]
+                    + y3_3 * sh_rest[i, 11, ch] + y3_4 * sh_rest[i, 12, ch] + y3_5 * sh_rest[i, 13, ch]
+                    + y3_6 * sh_rest[i, 14, ch]
+                )
+            c += 0.5
+            packed[i, 6 + ch] = c if c > 0.0 else 0.0
+        packed[i, 0] = u
+        packed[i, 1] = v
+        packed[i, 2] = syy / det
+        packed[i, 3] = -sxy / det
+        packed[i, 4] = sxx / det
+        packed[i, 5] = op
+        packed[i, 9] = depth
+        _write_footprint(packed, i, sxx, sxy, syy, det)
+        uv_out[i, 0] = u
+        uv_out[i, 1] = v
+        depth_out[i] = depth
+        valid_out[i] = packed[i, 10] >= 0.0
+        if valid_out[i]:
+            counts_out[i] = _row_tiles(packed, i, width, height, 1, dummy, False)
+
+
+@njit(cache=True)
+def _write_footprint(packed, i, sxx, sxy, syy, det):  # pragma: no cover - compiled
+    """Columns 10..15 of row ``i`` from its 2D covariance ``[[sxx, sxy], [sxy, syy]]`` (float64, ``det`` its
+    determinant) and the stored opacity (``lim = -1``: no footprint)."""
+    op = np.float64(packed[i, 5])
+    if op >= ALPHA_THRESHOLD and det > 0.0 and sxx > 0.0 and syy > 0.0:
+        lim = 2.0 * (math.log(op) + LOG_INV_ALPHA_THRESHOLD)
+        packed[i, 10] = lim
+        packed[i, 11] = math.sqrt(lim * syy) * (1.0 + BBOX_MARGIN_REL) + BBOX_MARGIN_PX
+        packed[i, 12] = 1.0 / syy
+        packed[i, 13] = -sxy / syy
+        packed[i, 14] = det / syy
+        packed[i, 15] = math.sqrt(lim * sxx) * (1.0 + BBOX_MARGIN_REL) + BBOX_MARGIN_PX
+    else:
+        packed[i, 10] = -1.0
+        for col in range(11, 16):
+            packed[i, col] = 0.0
+
+
+@njit(parallel=True, cache=True)
+def footprint_kernel(packed):  # pragma: no cover - compiled
+    """Fill columns 10..15 of every row from its conic (columns 2..4) and opacity (column 5)."""
+    for i in prange(packed.shape[0]):
+        a, b, c = np.float64(packed[i, 2]), np.float64(packed[i, 3]), np.float64(packed[i, 4])
+        detc = a * c - b * b
+        if detc > 0.0 and a > 0.0 and c > 0.0:
+            _write_footprint(packed, i, c / detc, -b / detc, a / detc, 1.0 / detc)
+        else:
+            _write_footprint(packed, i, 0.0, 0.0, 0.0, 0.0)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Footprints: bounding boxes, tile tests, per-row pixel spans (float64, shared by binning, forward, backward)
+# ------------------------------------------------------------------------------------------------------------
+@njit(cache=True)
+def _pixel_range(center, half, lo, hi):
+    """Integer pixel span ``[ceil(center - half), floor(center + half)]`` clipped to ``[lo, hi]``."""
+    a = center - half
+    b = center + half
+    if not (b >= lo and a <= hi):
+        return 1, 0
+    ia = lo if a <= lo else int(math.ceil(a))
+    ib = hi if b >= hi else int(math.floor(b))
+    return ia, ib
+
+
+@njit(cache=True)
+def _quad(a, beta, gamma, dx, dy):
+    """``a (dx + beta dy)^2 + gamma dy^2`` (the conic quadratic form without cancellation)."""
+    e = dx + beta * dy
+    return a * e * e + gamma * dy * dy
+
+
+@njit(cache=True)
+def _ellipse_hits_rect(mx, my, a, beta, gamma, lim, x0, x1, y0, y1):
+    """Whether ``min over [x0,x1]x[y0,y1]`` of the quadratic form (``d = p - mean``) is ``<= lim``."""
+    if x0 <= mx <= x1 and y0 <= my <= y1:
+        return True
+    tol = lim * (1.0 + 1e-6) + 1e-9
+    c = a * beta * beta + gamma  # conic c; the conic b is a * beta
+    best = np.inf
+    for k in range(2):
+        dx = (x0 if k == 0 else x1) - mx  # vertical edge: minimise over dy
+        dy = -a * beta * dx / c
+        dy = min(max(dy, y0 - my), y1 - my)
+        best = min(best, _quad(a, beta, gamma, dx, dy))
+        dy = (y0 if k == 0 else y1) - my  # horizontal edge: minimise over dx
+        dx = -beta * dy
+        dx = min(max(dx, x0 - mx), x1 - mx)
+        best = min(best, _quad(a, beta, gamma, dx, dy))
+    return best <= tol
+
+
+@njit(cache=True)
+def _tile_rect(packed, g, width, height):
+    """Tile range ``tx0, tx1, ty0, ty1`` (inclusive; empty when tx0 > tx1) of the footprint of row ``g``."""
+    if packed[g, 10] < 0.0:
+        return 1, 0, 1, 0
+    ix0, ix1 = _pixel_range(np.float64(packed[g, 0]), np.float64(packed[g, 15]), 0, width - 1)
+    iy0, iy1 = _pixel_range(np.float64(packed[g, 1]), np.float64(packed[g, 11]), 0, height - 1)
+    if ix0 > ix1 or iy0 > iy1:
+        return 1, 0, 1, 0
+    return ix0 // _TS, ix1 // _TS, iy0 // _TS, iy1 // _TS
+
+
+@njit(cache=True)
+def _row_tiles(packed, g, width, height, tiles_x, out, fill):
+    """Count (``fill=False``) or write into ``out`` the tiles reached by the footprint of row ``g``."""
+    tx0, tx1, ty0, ty1 = _tile_rect(packed, g, width, height)
+    mx, my = np.float64(packed[g, 0]), np.float64(packed[g, 1])
+    lim = np.float64(packed[g, 10])
+    gamma, beta = np.float64(packed[g, 12]), np.float64(packed[g, 13])
+    inv_a = np.float64(packed[g, 14])
+    a = 1.0 / inv_a if inv_a > 0.0 else 0.0
+    n = 0
+    for ty in range(ty0, ty1 + 1):
+        y0 = ty * _TS
+        y1 = min(y0 + _TS - 1, height - 1)
+        for tx in range(tx0, tx1 + 1):
+            x0 = tx * _TS
+            x1 = min(x0 + _TS - 1, width - 1)
+            if _ellipse_hits_rect(mx, my, a, beta, gamma, lim, x0, x1, y0, y1):
+                if fill:
+                    out[n] = ty * tiles_x + tx
+                n += 1
+    return n
+
+
+@njit(parallel=True, cache=True)
+def count_tiles_kernel(packed, rows, width, height, counts):  # pragma: no cover - compiled
+    """``counts[i]`` = number of tiles whose pixel rectangle the footprint of ``packed[rows[i]]`` reaches."""
+    dummy = np.empty(0, dtype=np.int64)
+    for i in prange(rows.shape[0]):
+        counts[i] = _row_tiles(packed, rows[i], width, height, 1, dummy, False)
+
+
+@njit(parallel=True, cache=True)
+def fill_tiles_kernel(packed, rows, start_of, counts, width, height, tiles_x, isect_tile, isect_row):  # pragma: no cover
+    """Intersection records of ``rows[i]`` at ``start_of[i] .. start_of[i] + counts[i]`` (Gaussian-major, the
+    Gaussians in depth order): ``isect_tile[e]``, ``isect_row[e]``; same decisions as :func:`count_tiles_kernel`."""
+    for i in prange(rows.shape[0]):
+        e0 = start_of[i]
+        e1 = e0 + counts[i]
+        if e1 > e0:
+            _row_tiles(packed, rows[i], width, height, tiles_x, isect_tile[e0:e1], True)
+            for e in range(e0, e1):
+                isect_row[e] = rows[i]
+
+
+@njit(cache=True)
+def sort_by_tile_kernel(isect_tile, isect_row, n_tiles, tile_start, sorted_row, pos_of_isect):  # pragma: no cover
+    """Stable counting sort of the intersections by tile (keeps the depth order within each tile)."""
+    m = isect_tile.shape[0]
+    for t in range(n_tiles + 1):
+        tile_start[t] = 0
+    for e in range(m):
+        tile_start[isect_tile[e] + 1] += 1
+    for t in range(n_tiles):
+        tile_start[t + 1] += tile_start[t]
+    cursor = tile_start[:-1].copy()
+    for e in range(m):
+        t = isect_tile[e]
+        p = cursor[t]
+        cursor[t] = p + 1
+        sorted_row[p] = isect_row[e]
+        pos_of_isect[e] = p
+
+
+@njit(cache=True)
+def radix_argsort_f64(keys):  # pragma: no cover - compiled
+    """Stable argsort of non-negative finite float64 keys (LSD radix on the IEEE bits, 4 x 16-bit digits)."""
+    n = keys.shape[0]
+    bits = keys.view(np.uint64)
+    idx = np.arange(n).astype(np.int64)
+    tmp = np.empty(n, dtype=np.int64)
+    count = np.zeros(65537, dtype=np.int64)
+    for shift in range(0, 64, 16):
+        count[:] = 0
+        for i in range(n):
+            d = np.int64((bits[idx[i]] >> np.uint64(shift)) & np.uint64(0xFFFF))
+            count[d + 1] += 1
+        if count[1:].max() == n:  # all keys share this digit: the pass would not move anything
+            continue
+        for d in range(65536):
+            count[d + 1] += count[d]
+        for i in range(n):
+            j = idx[i]
+            d = np.int64((bits[j] >> np.uint64(shift)) & np.uint64(0xFFFF))
+            tmp[count[d]] = j
+            count[d] += 1
+        idx, tmp = tmp, idx
+    return idx
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Rasterisation
+# ------------------------------------------------------------------------------------------------------------
+@njit(cache=True)
+def _row_span(mx, my, lim, gamma, beta, inv_a, yf, x_lo, x_hi):
+    """Pixels ``[xa, xb]`` of row ``yf`` (clipped to ``[x_lo, x_hi]``) that may lie inside the footprint
+    ``|dx + beta dy| <= sqrt((lim - gamma dy^2) / a)`` (float64 arguments; one square root)."""
+    dy = yf - my
+    r = (lim - gamma * dy * dy) * inv_a
+    sq = math.sqrt(r) if r > 0.0 else 0.0
+    half = sq * (1.0 + BBOX_MARGIN_REL) + BBOX_MARGIN_PX
+    return _pixel_range(mx - beta * dy, half, x_lo, x_hi)
+
+
+@njit(cache=True)
+def _gather_tile(packed, uv64, sorted_row, s0, s1, x0, y0):  # pragma: no cover - compiled
+    """Rows ``sorted_row[s0:s1]`` of ``packed`` as a contiguous ``[s1 - s0, 16]`` buffer with the means in
+    tile-local pixels (``uv64 - (x0, y0)``: float32 then resolves them to ~1e-6 px at any image size)."""
+    n = max(s1 - s0, 0)
+    tp = np.empty((n, packed.shape[1]), dtype=packed.dtype)
+    for j in range(n):
+        g = sorted_row[s0 + j]
+        for col in range(2, packed.shape[1]):
+            tp[j, col] = packed[g, col]
+        tp[j, 0] = uv64[g, 0] - x0
+        tp[j, 1] = uv64[g, 1] - y0
+    return tp
+
+
+@njit(parallel=True, cache=True)
+def raster_fwd_kernel(
+    packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
+    out_rgb, out_depth, out_T, out_last, out_evals,
+):  # pragma: no cover - compiled
+    """Front-to-back compositing per 16x16 tile (parallel over tiles).
+
+    Each tile first copies its rows of ``packed`` (``sorted_row[tile_start[t]:tile_start[t+1]]``, depth order)
+    into a contiguous local buffer (:func:`_gather_tile`, means from ``uv64`` in tile-local pixels) and then reads
+    them sequentially; ``xs``/``ys`` = ``arange(16)``. For each Gaussian of the tile (depth order) only the pixels of its
+    footprint's rows are visited. Outputs (background NOT added): ``out_rgb [H, W, 3] = sum_i c_i alpha_i T_i``,
+    ``out_depth [H, W] = sum_i t_i alpha_i T_i``, ``out_T [H, W]`` final transmittance, ``out_last [H, W]``
+    int32 position (in ``sorted_row``) of the last composited Gaussian (-1: none), ``out_evals [n_tiles]``
+    (Gaussian, pixel) pairs visited.
+    """
+    max_alpha, a_thr, t_thr, one, half, zero = cst[0], cst[1], cst[2], cst[3], cst[4], cst[5]
+    n_tiles = tile_start.shape[0] - 1
+    npx = _TS * _TS
+    for t in prange(n_tiles):
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        x0 = tx * _TS
+        y0 = ty * _TS
+        x1 = min(x0 + _TS, width) - 1
+        y1 = min(y0 + _TS, height) - 1
+        tw = x1 - x0 + 1
+        th = y1 - y0 + 1
+        npix = tw * th
+        T = np.full(npx, one)
+        Cr = np.zeros(npx, dtype=packed.dtype)
+        Cg = np.zeros(npx, dtype=packed.dtype)
+        Cb = np.zeros(npx, dtype=packed.dtype)
+        D = np.zeros(npx, dtype=packed.dtype)
+        last = np.full(npx, -1, dtype=np.int32)
+        done = np.zeros(npx, dtype=np.bool_)
+        n_done = 0
+        evals = 0
+        s0 = tile_start[t]
+        tp = _gather_tile(packed, uv64, sorted_row, s0, tile_start[t + 1], x0, y0)
+        for j in range(tp.shape[0]):
+            s = s0 + j
+            if tp[j, 10] < zero:
+                continue
+            mx, my = tp[j, 0], tp[j, 1]
+            a, b, c = tp[j, 2], tp[j, 3], tp[j, 4]
+            op = tp[j, 5]
+            cr, cg, cb = tp[j, 6], tp[j, 7], tp[j, 8]
+            dep = tp[j, 9]
+            gam, bet = tp[j, 12], tp[j, 13]
+            mx64, my64 = np.float64(mx), np.float64(my)
+            lim64, gam64, bet64 = np.float64(tp[j, 10]), np.float64(gam), np.float64(bet)
+            inva64 = np.float64(tp[j, 14])
+            ya, yb = _pixel_range(my64, np.float64(tp[j, 11]), 0, th - 1)
+            s32 = np.int32(s)
+            for y in range(ya, yb + 1):
+                xa, xb = _row_span(mx64, my64, lim64, gam64, bet64, inva64, np.float64(y), 0, tw - 1)
+                if xa > xb:
+                    continue
+                evals += xb - xa + 1
+                dy = ys[y] - my
+                gdy = gam * dy * dy
+                bdy = bet * dy
+                base = y * _TS
+                for x in range(xa, xb + 1):
+                    p = base + x
+                    if done[p]:
+                        continue
+                    e = xs[x] - mx + bdy
+                    power = -half * (a * e * e + gdy)
+                    if power > zero:
+                        continue
+                    alpha = min(max_alpha, op * fexp(power))
+                    if alpha < a_thr:
+                        continue
+                    Tp = T[p]
+                    test_T = Tp * (one - alpha)
+                    if test_T < t_thr:
+                        done[p] = True
+                        n_done += 1
+                        continue
+                    w = alpha * Tp
+                    Cr[p] += w * cr
+                    Cg[p] += w * cg
+                    Cb[p] += w * cb
+                    D[p] += w * dep
+                    T[p] = test_T
+                    last[p] = s32
+            if n_done == npix:
+                break
+        out_evals[t] = evals
+        for yl in range(th):
+            for xl in range(tw):
+                p = yl * _TS + xl
+                out_rgb[y0 + yl, x0 + xl, 0] = Cr[p]
+                out_rgb[y0 + yl, x0 + xl, 1] = Cg[p]
+                out_rgb[y0 + yl, x0 + xl, 2] = Cb[p]
+                out_depth[y0 + yl, x0 + xl] = D[p]
+                out_T[y0 + yl, x0 + xl] = T[p]
+                out_last[y0 + yl, x0 + xl] = last[p]
+
+
+@njit(parallel=True, cache=True)
+def raster_bwd_kernel(
+    packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
+    final_T, last_idx, g_rgb, g_depth, g_T, out_grad,
+):  # pragma: no cover - compiled
+    """Backward of :func:`raster_fwd_kernel` (INRIA style: back to front from each pixel's last contributor,
+    transmittance recovered from the stored final T; the same instructions decide which pairs count).
+
+    ``g_rgb [H, W, 3]``, ``g_depth [H, W]``, ``g_T [H, W]``: gradients of the loss w.r.t. the three forward
+    outputs. Writes ``out_grad [M, 10]`` per intersection position ``s`` (race-free: each position belongs to
+    one tile): d/d(u, v, conic a, b, c, opacity, r, g, b, ray_depth).
+    """
+    max_alpha, a_thr, one, half, zero = cst[0], cst[1], cst[3], cst[4], cst[5]
+    n_tiles = tile_start.shape[0] - 1
+    for t in prange(n_tiles):
+        s_begin = tile_start[t]
+        s_end = tile_start[t + 1]
+        if s_end == s_begin:
+            continue
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        x0 = tx * _TS
+        y0 = ty * _TS
+        x1 = min(x0 + _TS, width) - 1
+        y1 = min(y0 + _TS, height) - 1
+        tw = x1 - x0 + 1
+        th = y1 - y0 + 1
+        n = _TS * _TS
+        Tc = np.ones(n, dtype=packed.dtype)
+        Tf = np.ones(n, dtype=packed.dtype)
+        lastp = np.full(n, -1, dtype=np.int64)
+        gc = np.zeros((n, 3), dtype=packed.dtype)
+        gd = np.zeros(n, dtype=packed.dtype)
+        gT = np.zeros(n, dtype=packed.dtype)
+        Rc = np.zeros((n, 3), dtype=packed.dtype)
+        Rd = np.zeros(n, dtype=packed.dtype)
+        la = np.zeros(n, dtype=packed.dtype)
+        lc = np.zeros((n, 3), dtype=packed.dtype)
+        ld = np.zeros(n, dtype=packed.dtype)
+        max_last = -1
+        for y in range(y0, y1 + 1):
+            for x in range(x0, x1 + 1):
+                p = (y - y0) * _TS + (x - x0)
+                Tf[p] = final_T[y, x]
+                Tc[p] = final_T[y, x]
+                lastp[p] = last_idx[y, x]
+                max_last = max(max_last, last_idx[y, x])
+                gc[p, 0] = g_rgb[y, x, 0]
+                gc[p, 1] = g_rgb[y, x, 1]
+                gc[p, 2] = g_rgb[y, x, 2]
+                gd[p] = g_depth[y, x]
+                gT[p] = g_T[y, x]
+        for s in range(s_begin, s_end):
+            for col in range(out_grad.shape[1]):
+                out_grad[s, col] = 0.0
+        tp = _gather_tile(packed, uv64, sorted_row, s_begin, max_last + 1, x0, y0)
+        for s in range(max_last, s_begin - 1, -1):
+            j = s - s_begin
+            if tp[j, 10] < zero:
+                continue
+            mx, my = tp[j, 0], tp[j, 1]
+            a, b, c = tp[j, 2], tp[j, 3], tp[j, 4]
+            op = tp[j, 5]
+            cr, cg, cb = tp[j, 6], tp[j, 7], tp[j, 8]
+            dep = tp[j, 9]
+            gam, bet = tp[j, 12], tp[j, 13]
+            mx64, my64 = np.float64(mx), np.float64(my)
+            lim64, gam64, bet64 = np.float64(tp[j, 10]), np.float64(gam), np.float64(bet)
+            inva64 = np.float64(tp[j, 14])
+            a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
+            ya, yb = _pixel_range(my64, np.float64(tp[j, 11]), 0, th - 1)
+            gmx = 0.0
+            gmy = 0.0
+            ga = 0.0
+            gb = 0.0
+            gcc = 0.0
+            gop = 0.0
+            gr = 0.0
+            gg = 0.0
+            gbl = 0.0
+            gdep = 0.0
+            for y in range(ya, yb + 1):
+                xa, xb = _row_span(mx64, my64, lim64, gam64, bet64, inva64, np.float64(y), 0, tw - 1)
+                if xa > xb:
+                    continue
+                dy = ys[y] - my
+                gdy = gam * dy * dy
+                bdy = bet * dy
+                base = y * _TS
+                for x in range(xa, xb + 1):
+                    p = base + x
+                    if s > lastp[p]:
+                        continue
+                    dx = xs[x] - mx
+                    e = dx + bdy
+                    power = -half * (a * e * e + gdy)
+                    G = fexp(power)
+                    oG = op * G
+                    alpha = min(max_alpha, oG)
+                    if not ((alpha >= a_thr) and (power <= zero)):
+                        continue
+                    Ti = Tc[p] / (one - alpha)
+                    w = alpha * Ti
+                    g0, g1, g2, gdp = gc[p, 0], gc[p, 1], gc[p, 2], gd[p]
+                    gr += np.float64(w * g0)
+                    gg += np.float64(w * g1)
+                    gbl += np.float64(w * g2)
+                    gdep += np.float64(w * gdp)
+                    lap = la[p]
+                    r0 = lap * lc[p, 0] + (one - lap) * Rc[p, 0]
+                    r1 = lap * lc[p, 1] + (one - lap) * Rc[p, 1]
+                    r2 = lap * lc[p, 2] + (one - lap) * Rc[p, 2]
+                    rd = lap * ld[p] + (one - lap) * Rd[p]
+                    Rc[p, 0] = r0
+                    Rc[p, 1] = r1
+                    Rc[p, 2] = r2
+                    Rd[p] = rd
+                    dL_dalpha = Ti * (g0 * (cr - r0) + g1 * (cg - r1) + g2 * (cb - r2) + gdp * (dep - rd))
+                    dL_dalpha -= gT[p] * Tf[p] / (one - alpha)
+                    la[p] = alpha
+                    lc[p, 0] = cr
+                    lc[p, 1] = cg
+                    lc[p, 2] = cb
+                    ld[p] = dep
+                    Tc[p] = Ti
+                    if oG <= max_alpha:
+                        gop += np.float64(G * dL_dalpha)
+                        dLdp = np.float64(alpha * dL_dalpha)
+                        dx64 = np.float64(dx)
+                        dy64 = np.float64(dy)
+                        ga += -0.5 * dLdp * dx64 * dx64
+                        gb += -dLdp * dx64 * dy64
+                        gcc += -0.5 * dLdp * dy64 * dy64
+                        gmx += dLdp * (a64 * dx64 + b64 * dy64)
+                        gmy += dLdp * (b64 * dx64 + c64 * dy64)
+            out_grad[s, 0] = gmx
+            out_grad[s, 1] = gmy
+            out_grad[s, 2] = ga
+            out_grad[s, 3] = gb
+            out_grad[s, 4] = gcc
+            out_grad[s, 5] = gop
+            out_grad[s, 6] = gr
+            out_grad[s, 7] = gg
+            out_grad[s, 8] = gbl
+            out_grad[s, 9] = gdep
+
+
+@njit(parallel=True, cache=True)
+def reduce_grads_kernel(isect_grad, pos_of_isect, offsets, rows, out):  # pragma: no cover - compiled
+    """``out[rows[i]] = sum of isect_grad[pos_of_isect[e]]`` over the intersections ``e`` of Gaussian ``i``."""
+    ncol = isect_grad.shape[1]
+    for i in prange(rows.shape[0]):
+        g = rows[i]
+        for col in range(ncol):
+            acc = 0.0
+            for e in range(offsets[i], offsets[i + 1]):
+                acc += np.float64(isect_grad[pos_of_isect[e], col])
+            out[g, col] = acc

@@ -1,0 +1,206 @@
+"""Differentiable EWA projection of 3D Gaussians through the full Kannala–Brandt fisheye model (torch).
+
+For a Gaussian with mean ``mu`` (world), rotation ``R`` and scales ``s``, seen from ``T_world_cam``:
+
+* ``p = R_cw mu + t_cw`` (OpenCV camera frame); ``ray_depth = |p|`` (distance along the ray, not z: Gaussians
+  beyond 90 deg, z < 0, are ordered and rendered like any other);
+* ``(u, v) = KB(p)`` and ``J = dKB/dp`` [2, 3] including the distortion ``k1..k4``
+  (:func:`umi_aug.camera.kb_torch.project_jacobian`, exact on the optical axis, finite past 90 deg);
+* ``Sigma_2D = (J R_cw R S)(J R_cw R S)^T + lambda I`` with the filter ``lambda`` (``"inria"`` 0.3 px^2,
+  ``"mip"`` 0.1 px^2 with opacity compensation ``sqrt(det Sigma / det(Sigma + lambda I))``, ``"none"``);
+  ``det`` by Cauchy–Binet (sum of squared 2x2 minors of ``J R_cw R S``: never negative, exact for needles);
+* colour from SH along the world direction camera centre -> mean, ``max(0, SH + 0.5)``.
+
+Culling (a culled Gaussian gets exactly zero gradient, never NaN): centre inside the near sphere or beyond
+``far``; ray angle beyond ``intr.theta_max`` (KB fold-over / lens limit: the mean falls outside the image
+circle); near-singular ``Sigma_2D``; opacity below the alpha threshold (no pixel can reach it); opacity-aware
+bounding box (``d^T Sigma^-1 d <= 2 ln(255 o)``) outside the image.
+
+This module is the projection of the training path (autograd provides its backward); the inference path runs the
+same formulas in numba (:func:`umi_aug.splat._kernels.project_kernel`), the reference renderer in
+:mod:`umi_aug.splat._torch_impl` uses an autograd Jacobian instead of the analytic one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from umi_aug.camera import kb_torch
+from umi_aug.camera.intrinsics import FisheyeIntrinsics
+from umi_aug.errors import SplatError
+from umi_aug.geometry.se3_torch import quat_wxyz_to_matrix
+from umi_aug.splat._constants import (
+    ALPHA_THRESHOLD,
+    BBOX_MARGIN_PX,
+    BBOX_MARGIN_REL,
+    DEFAULT_FAR,
+    DEFAULT_NEAR,
+    FILTER_COMPENSATED,
+    FILTER_DILATION,
+    LOG_INV_ALPHA_THRESHOLD,
+    MIN_DET_2D_ABS,
+    MIN_DET_2D_REL,
+)
+from umi_aug.splat.gaussians import Gaussians
+from umi_aug.splat.sh import eval_sh, view_directions
+
+__all__ = ["Projected", "project_gaussians", "camera_from_pose", "check_filter"]
+
+Tensor = torch.Tensor
+
+
+def check_filter(filter: str) -> tuple[float, bool]:
+    """``(dilation px^2, compensate)`` of a filter name; raises :class:`SplatError` for an unknown one."""
+    if filter not in FILTER_DILATION:
+        raise SplatError(f"unknown filter {filter!r}; expected one of {sorted(FILTER_DILATION)}")
+    return FILTER_DILATION[filter], filter in FILTER_COMPENSATED
+
+
+def camera_from_pose(T_world_cam, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
+    """``R_cw [3, 3]``, ``t_cw [3]`` and the camera centre ``[3]`` (world) from ``T_world_cam [4, 4]``.
+
+    Raises:
+        SplatError: wrong shape or non-finite pose.
+    """
+    T = torch.as_tensor(T_world_cam)
+    if T.shape != (4, 4):
+        raise SplatError(f"T_world_cam must have shape [4, 4], got {list(T.shape)}")
+    T = T.to(dtype)
+    if not bool(torch.isfinite(T.detach()).all()):
+        raise SplatError(f"T_world_cam has non-finite entries: {T.detach().tolist()}")
+    R_wc = T[:3, :3]
+    t_wc = T[:3, 3]
+    R_cw = R_wc.transpose(0, 1)
+    return R_cw, -(R_cw @ t_wc), t_wc
+
+
+def _kb_project_with_jacobian(p: Tensor, intr: FisheyeIntrinsics) -> tuple[Tensor, Tensor]:
+    """Projection and its Jacobian for points already known to be valid (:func:`kb_torch.project_with_jacobian`:
+    one normalisation and one evaluation of the radial terms; exact on the optical axis).
+
+    Args:
+        p: Tensor,  # [V, 3] camera frame
+    Returns:
+        uv: Tensor,  # [V, 2] pixels
+        J: Tensor,  # [V, 2, 3] d(u, v)/d(x, y, z), pixels per metre
+    """
+    uv, J, _ = kb_torch.project_with_jacobian(p, intr)
+    return uv, J
+
+
+@dataclass
+class Projected:
+    """Visible Gaussians after projection (all tensors ``[V, ...]``, differentiable where the inputs are).
+
+    Attributes:
+        ids: Tensor,  # [V] int64 rows of the input Gaussians
+        means2d: Tensor,  # [V, 2] pixels (u, v), pixel centres at integers
+        conics: Tensor,  # [V, 3] (a, b, c) of Sigma_2D^-1 = [[a, b], [b, c]], 1/px^2
+        opacities: Tensor,  # [V] sigmoid(logit) x compensation
+        colors: Tensor,  # [V, 3] RGB (SH, clamped at 0)
+        depths: Tensor,  # [V] ray distance to the mean, metres
+        cov2d: Tensor,  # [V, 3] (xx, xy, yy) of Sigma_2D incl. the filter, px^2
+    """
+
+    ids: Tensor
+    means2d: Tensor
+    conics: Tensor
+    opacities: Tensor
+    colors: Tensor
+    depths: Tensor
+    cov2d: Tensor
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+def project_gaussians(
+    gaussians: Gaussians,
+    T_world_cam: Tensor | np.ndarray,  # [4, 4] camera pose, metres
+    intr: FisheyeIntrinsics,
+    sh_degree: int | None = None,
+    filter: str = "inria",
+    near: float = DEFAULT_NEAR,
+    far: float = DEFAULT_FAR,
+) -> Projected:
+    """Project, cull and shade the Gaussians (differentiable w.r.t. every Gaussian parameter and the pose).
+
+    Args:
+        gaussians: the scene (any float dtype; the computation runs in that dtype).
+        T_world_cam: camera pose ``[4, 4]`` (``p_world = T_world_cam @ p_cam``, OpenCV camera frame).
+        intr: KB fisheye intrinsics (image size included).
+        sh_degree: SH degree to evaluate (default and maximum: the scene's).
+        filter: ``"inria"`` | ``"mip"`` | ``"none"`` (see module docstring).
+        near, far: culling sphere radii around the camera centre, metres.
+
+    Returns:
+        :class:`Projected` for the visible Gaussians.
+    """
+    dilation, compensate = check_filter(filter)
+    g = gaussians
+    deg = g.sh_degree if sh_degree is None else min(int(sh_degree), g.sh_degree)
+    dt = g.dtype
+    R_cw, t_cw, campos = camera_from_pose(T_world_cam, dt)
+
+    # cheap detached pre-cull (near/far sphere, ray angle) so the differentiable part only sees safe inputs
+    with torch.no_grad():
+        p_all = g.means.detach() @ R_cw.detach().T + t_cw.detach()
+        d_all = torch.linalg.vector_norm(p_all, dim=-1)
+        _, ok_proj = kb_torch.project(p_all, intr)
+        pre = ok_proj & (d_all > near) & (d_all < far) & torch.isfinite(d_all)
+        ids0 = torch.nonzero(pre).squeeze(-1)
+
+    sel = lambda t: t.index_select(0, ids0)  # noqa: E731  (backward = index_add, cheaper than index_put)
+    means = sel(g.means)
+    p = means @ R_cw.T + t_cw
+    depth = torch.sqrt((p * p).sum(-1))
+    uv, J = _kb_project_with_jacobian(p, intr)  # [V, 2], [V, 2, 3]
+    R = quat_wxyz_to_matrix(sel(g.quats_wxyz))  # [V, 3, 3]
+    s = torch.exp(sel(g.log_scales))
+    M = (R_cw @ R) * s[:, None, :]  # columns scaled: R_cw R diag(s)
+    JM = J @ M  # [V, 2, 3]
+    A, B = JM[:, 0, :], JM[:, 1, :]
+    sxx0 = (A * A).sum(-1)
+    sxy = (A * B).sum(-1)
+    syy0 = (B * B).sum(-1)
+    m01 = A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]
+    m02 = A[:, 0] * B[:, 2] - A[:, 2] * B[:, 0]
+    m12 = A[:, 1] * B[:, 2] - A[:, 2] * B[:, 1]
+    det0 = m01 * m01 + m02 * m02 + m12 * m12
+    sxx = sxx0 + dilation
+    syy = syy0 + dilation
+    det = det0 + dilation * (sxx0 + syy0) + dilation * dilation
+    half_tr = 0.5 * (sxx + syy)
+    ok = (det > MIN_DET_2D_ABS) & (det > MIN_DET_2D_REL * half_tr * half_tr) & torch.isfinite(det)
+    det_safe = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([syy / det_safe, -sxy / det_safe, sxx / det_safe], dim=-1)
+    op = torch.sigmoid(sel(g.logit_opacities))
+    if compensate:
+        pos = ok & (det0 > 0)
+        ratio = torch.where(pos, det0 / det_safe, torch.ones_like(det0))
+        op = torch.where(pos, op * torch.sqrt(ratio), torch.zeros_like(op))
+    ok = ok & (op >= ALPHA_THRESHOLD)
+    with torch.no_grad():  # opacity-aware bounding box inside the image?
+        lim = 2.0 * (torch.log(torch.where(ok, op, torch.ones_like(op))) + LOG_INV_ALPHA_THRESHOLD)
+        hx = torch.sqrt(torch.clamp_min(lim * sxx, 0)) * (1 + BBOX_MARGIN_REL) + BBOX_MARGIN_PX
+        hy = torch.sqrt(torch.clamp_min(lim * syy, 0)) * (1 + BBOX_MARGIN_REL) + BBOX_MARGIN_PX
+        u, v = uv[:, 0].detach(), uv[:, 1].detach()
+        inside = (u + hx >= 0) & (u - hx <= intr.width - 1) & (v + hy >= 0) & (v - hy <= intr.height - 1)
+        keep = torch.nonzero(ok & inside).squeeze(-1)
+    ids = ids0.index_select(0, keep)
+    kp = lambda t: t.index_select(0, keep)  # noqa: E731
+    dirs = view_directions(kp(means), campos)
+    sh = torch.cat([g.sh0.index_select(0, ids)[:, None, :], g.sh_rest.index_select(0, ids)], dim=1)
+    colors = torch.clamp_min(eval_sh(deg, sh, dirs) + 0.5, 0.0)
+    return Projected(
+        ids=ids,
+        means2d=kp(uv),
+        conics=kp(conics),
+        opacities=kp(op),
+        colors=colors,
+        depths=kp(depth),
+        cov2d=kp(torch.stack([sxx, sxy, syy], dim=-1)),
+    )

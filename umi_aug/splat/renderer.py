@@ -1,0 +1,410 @@
+"""CPU fisheye Gaussian splatting: :func:`render` (fast numba path) and the rasteriser autograd function.
+
+Pipeline (gsplat's split): projection (numba for inference, torch autograd when gradients are needed) ->
+binning (depth sort of the visible Gaussians by ray distance, stable counting sort into 16x16 tiles, exact
+ellipse/tile test) -> rasterisation (numba, parallel over tiles; hand-written backward that replays each pixel
+from its last contributor using the stored final transmittance) exposed as :class:`RasterizeGaussians`
+(``torch.autograd.Function``). The dense float64 torch reference lives in :mod:`umi_aug.splat._torch_impl`.
+
+Outputs follow the project conventions: RGB float ``[H, W, 3]``, ``alpha = 1 - T_final`` ``[H, W]`` and
+``ray_depth`` ``[H, W]`` = alpha-normalised expected distance along the pixel ray (metres; 0 where nothing
+was composited).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal, Sequence
+
+import numba
+import numpy as np
+import torch
+
+from umi_aug.camera.intrinsics import FisheyeIntrinsics
+from umi_aug.errors import SplatError
+from umi_aug.splat import _kernels as K
+from umi_aug.splat._constants import DEFAULT_FAR, DEFAULT_FILTER, DEFAULT_NEAR, TILE_SIZE
+from umi_aug.splat.gaussians import Gaussians
+from umi_aug.splat.project import camera_from_pose, check_filter, project_gaussians
+
+__all__ = [
+    "RenderOutput", "Binning", "RasterizeGaussians", "render", "bin_gaussians", "rasterize_packed", "project_numba",
+]
+
+Tensor = torch.Tensor
+
+#: Iterations handed to one worker at a time by the parallel loops over tiles (dynamic balancing).
+PARALLEL_CHUNK = 1
+#: Below this much work (Gaussians, intersections, pixels) a kernel runs on one thread: waking the thread pool
+#: costs more than it saves, and on busy shared cores it can stall for milliseconds.
+SERIAL_WORK = 50_000
+
+
+@contextlib.contextmanager
+def _parallel(work: int, chunk: int):
+    """Run the enclosed numba parallel loops with ``chunk`` iterations per hand-out, single-threaded when
+    ``work < SERIAL_WORK``."""
+    n = numba.get_num_threads()
+    serial = work < SERIAL_WORK and n > 1
+    if serial:
+        numba.set_num_threads(1)
+    try:
+        with numba.parallel_chunksize(chunk):
+            yield
+    finally:
+        if serial:
+            numba.set_num_threads(n)
+
+
+@dataclass
+class RenderOutput:
+    """Result of :func:`render`.
+
+    Attributes:
+        rgb: Tensor,  # [H, W, 3] colour, background composited
+        alpha: Tensor,  # [H, W] 1 - final transmittance
+        ray_depth: Tensor,  # [H, W] expected distance along the ray (metres), alpha-normalised, 0 if alpha = 0
+        meta: dict with ``ids`` (visible Gaussian rows, [V]), ``means2d`` ([V, 2]; in the autograd path a
+            non-leaf tensor of the graph, call ``retain_grad()`` on it before ``backward`` for densification),
+            ``n_visible``, ``n_isects`` ((tile, Gaussian) pairs), ``n_evals`` ((Gaussian, pixel) pairs
+            evaluated by the forward), ``tiles`` ((tiles_x, tiles_y)), ``timings`` (seconds per stage).
+    """
+
+    rgb: Tensor
+    alpha: Tensor
+    ray_depth: Tensor
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Binning:
+    """Tile lists of one frame (numpy; ``rows`` index the packed per-Gaussian array).
+
+    Attributes:
+        rows: [V] int64 visible rows in depth order (ray distance, ties by row).
+        offsets: [V+1] int64 intersections of ``rows[i]`` are ``offsets[i]..offsets[i+1]`` (Gaussian-major).
+        tile_start: [n_tiles+1] int64 tile ``t`` owns ``sorted_row[tile_start[t]:tile_start[t+1]]``.
+        sorted_row: [M] int64 packed rows, per tile in depth order.
+        pos_of_isect: [M] int64 position in ``sorted_row`` of Gaussian-major intersection ``e``.
+    """
+
+    rows: np.ndarray
+    offsets: np.ndarray
+    tile_start: np.ndarray
+    sorted_row: np.ndarray
+    pos_of_isect: np.ndarray
+    width: int
+    height: int
+    tiles_x: int
+    tiles_y: int
+
+    @property
+    def n_isects(self) -> int:
+        return int(self.sorted_row.shape[0])
+
+
+def bin_gaussians(
+    packed: np.ndarray, rows: np.ndarray, depth: np.ndarray, width: int, height: int,
+    counts: np.ndarray | None = None,
+) -> Binning:
+    """Sort ``rows`` of ``packed`` by ``depth`` and build the per-tile lists.
+
+    Tile counts and tile ids are computed in the (ascending) order of ``rows`` so that ``packed`` is read
+    sequentially; only the small intersection records are scattered into depth order.
+
+    Args:
+        packed: [G, 16] per-Gaussian array (see :mod:`umi_aug.splat._kernels`), columns 10..15 filled.
+        rows: [V] int64 rows to render.
+        depth: [V] float64 sort key (ray distance, > 0) of ``rows``.
+        width, height: image size.
+        counts: [V] tiles per row when already known (the numba projection computes them).
+    """
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    depth = np.ascontiguousarray(depth, dtype=np.float64)
+    V = rows.shape[0]
+    order = K.radix_argsort_f64(depth) if V else np.zeros(0, dtype=np.int64)
+    if counts is None:
+        counts = np.zeros(V, dtype=np.int64)
+        with _parallel(4 * V, 256):
+            K.count_tiles_kernel(packed, rows, width, height, counts)
+    else:
+        counts = np.ascontiguousarray(counts, dtype=np.int64)
+    offsets = np.zeros(V + 1, dtype=np.int64)
+    np.cumsum(counts[order], out=offsets[1:])
+    start_of = np.empty(V, dtype=np.int64)
+    start_of[order] = offsets[:-1]
+    m = int(offsets[-1])
+    isect_tile = np.empty(m, dtype=np.int64)
+    isect_row = np.empty(m, dtype=np.int64)
+    with _parallel(4 * V, 256):
+        K.fill_tiles_kernel(packed, rows, start_of, counts, width, height, tiles_x, isect_tile, isect_row)
+    n_tiles = tiles_x * tiles_y
+    tile_start = np.empty(n_tiles + 1, dtype=np.int64)
+    sorted_row = np.empty(m, dtype=np.int64)
+    pos = np.empty(m, dtype=np.int64)
+    K.sort_by_tile_kernel(isect_tile, isect_row, n_tiles, tile_start, sorted_row, pos)
+    return Binning(rows[order], offsets, tile_start, sorted_row, pos, width, height, tiles_x, tiles_y)
+
+
+def _pixel_coords(binning: Binning, dtype) -> tuple[np.ndarray, np.ndarray]:
+    """Tile-local pixel coordinates (the kernels work relative to each tile's origin)."""
+    return np.arange(TILE_SIZE, dtype=dtype), np.arange(TILE_SIZE, dtype=dtype)
+
+
+def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray) -> dict[str, np.ndarray]:
+    """Forward rasterisation in the dtype of ``packed`` (``uv64 [G, 2]``: the means in float64).
+
+    Returns ``rgb`` [H, W, 3] (no background), ``depth`` [H, W] (not normalised), ``T`` [H, W], ``last``
+    [H, W] int32 and ``evals`` [n_tiles]."""
+    H, W = binning.height, binning.width
+    dt = packed.dtype
+    out = {
+        "rgb": np.empty((H, W, 3), dtype=dt),
+        "depth": np.empty((H, W), dtype=dt),
+        "T": np.empty((H, W), dtype=dt),
+        "last": np.empty((H, W), dtype=np.int32),
+        "evals": np.zeros(binning.tiles_x * binning.tiles_y, dtype=np.int64),
+    }
+    xs, ys = _pixel_coords(binning, dt)
+    with _parallel(16 * binning.n_isects + H * W, PARALLEL_CHUNK):
+        K.raster_fwd_kernel(
+            packed, uv64, binning.tile_start, binning.sorted_row, W, H, binning.tiles_x, xs, ys,
+            K.raster_constants(dt), out["rgb"], out["depth"], out["T"], out["last"], out["evals"],
+        )
+    return out
+
+
+def rasterize_packed_backward(
+    packed: np.ndarray, binning: Binning, final_T: np.ndarray, last: np.ndarray,
+    g_rgb: np.ndarray, g_depth: np.ndarray, g_T: np.ndarray, uv64: np.ndarray,
+) -> np.ndarray:
+    """Gradients ``[G, 10]`` (float64) w.r.t. the packed columns 0..9 of every row (zero for rows not binned);
+    ``final_T``, ``last`` come from the forward, ``uv64 [G, 2]`` are the float64 means it used."""
+    dt = packed.dtype
+    xs, ys = _pixel_coords(binning, dt)
+    isect_grad = np.empty((binning.n_isects, K.GRAD_COLS), dtype=dt)
+    with _parallel(32 * binning.n_isects + binning.width * binning.height, PARALLEL_CHUNK):
+        K.raster_bwd_kernel(
+            packed, uv64, binning.tile_start, binning.sorted_row, binning.width, binning.height, binning.tiles_x,
+            xs, ys, K.raster_constants(dt), final_T, last,
+            np.ascontiguousarray(g_rgb, dtype=dt), np.ascontiguousarray(g_depth, dtype=dt),
+            np.ascontiguousarray(g_T, dtype=dt), isect_grad,
+        )
+    out = np.zeros((packed.shape[0], K.GRAD_COLS), dtype=np.float64)
+    with _parallel(binning.n_isects, 256):
+        K.reduce_grads_kernel(isect_grad, binning.pos_of_isect, binning.offsets, binning.rows, out)
+    return out
+
+
+def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor, dtype) -> np.ndarray:
+    V = means2d.shape[0]
+    packed = np.zeros((V, K.PACKED_COLS), dtype=dtype)
+    packed[:, 0:2] = means2d.detach().cpu().numpy()
+    packed[:, 2:5] = conics.detach().cpu().numpy()
+    packed[:, 5] = opacities.detach().cpu().numpy()
+    packed[:, 6:9] = colors.detach().cpu().numpy()
+    packed[:, 9] = depths.detach().cpu().numpy()
+    with _parallel(4 * V, 256):
+        K.footprint_kernel(packed)
+    return packed
+
+
+class RasterizeGaussians(torch.autograd.Function):
+    """Differentiable tile rasteriser (numba forward and hand-written backward).
+
+    ``forward(means2d [V, 2], conics [V, 3], opacities [V], colors [V, 3], depths [V], width, height)`` returns
+    ``(rgb_acc [H, W, 3], depth_acc [H, W], T_final [H, W])`` without background; the working dtype is the
+    inputs' (float32 or float64). Gradients flow to all five inputs.
+    """
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, depths, width: int, height: int, stats: dict | None = None):
+        dt = np.float64 if means2d.dtype == torch.float64 else np.float32
+        packed = _pack(means2d, conics, opacities, colors, depths, dt)
+        rows = np.arange(packed.shape[0], dtype=np.int64)
+        binning = bin_gaussians(packed, rows, depths.detach().cpu().numpy().astype(np.float64), width, height)
+        uv64 = means2d.detach().cpu().numpy().astype(np.float64)
+        out = rasterize_packed(packed, binning, uv64)
+        ctx.packed, ctx.binning, ctx.uv64 = packed, binning, uv64
+        ctx.grad_dtype = means2d.dtype
+        ctx.final_T, ctx.last = out["T"].copy(), out["last"]  # the returned T may be modified by the caller
+        if stats is not None:
+            stats["n_isects"] = binning.n_isects
+            stats["n_evals"] = int(out["evals"].sum())
+            stats["tiles"] = (binning.tiles_x, binning.tiles_y)
+        tt = lambda a: torch.from_numpy(a).to(means2d.dtype)  # noqa: E731
+        return tt(out["rgb"]), tt(out["depth"]), tt(out["T"])
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_depth, g_T):
+        zeros = lambda shape: np.zeros(shape, dtype=ctx.packed.dtype)  # noqa: E731
+        H, W = ctx.binning.height, ctx.binning.width
+        g_rgb = zeros((H, W, 3)) if g_rgb is None else g_rgb.detach().cpu().numpy()
+        g_depth = zeros((H, W)) if g_depth is None else g_depth.detach().cpu().numpy()
+        g_T = zeros((H, W)) if g_T is None else g_T.detach().cpu().numpy()
+        grad = rasterize_packed_backward(
+            ctx.packed, ctx.binning, ctx.final_T, ctx.last, g_rgb, g_depth, g_T, ctx.uv64
+        )
+        gt = torch.from_numpy(grad).to(ctx.grad_dtype)
+        return gt[:, 0:2], gt[:, 2:5], gt[:, 5], gt[:, 6:9], gt[:, 9], None, None, None
+
+
+def project_numba(
+    gaussians: Gaussians,
+    T_world_cam: Tensor | np.ndarray,
+    intr: FisheyeIntrinsics,
+    sh_degree: int,
+    filter: str = DEFAULT_FILTER,
+    near: float = DEFAULT_NEAR,
+    far: float = DEFAULT_FAR,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Projection of the inference path (numba, float64 inside, no gradients): same semantics as
+    :func:`umi_aug.splat.project.project_gaussians`.
+
+    Returns:
+        ``packed [N, 16]`` in the scene's dtype (see :mod:`umi_aug.splat._kernels`), ``uv [N, 2]`` float64,
+        ``ray_depth [N]`` float64, ``valid [N]`` bool (rows not culled) and ``tile_counts [N]`` int64.
+    """
+    dilation, compensate = check_filter(filter)
+    np_dt = np.float64 if gaussians.dtype == torch.float64 else np.float32
+    pose = torch.as_tensor(T_world_cam).detach()
+    R_cw, t_cw, campos = (x.numpy() for x in camera_from_pose(pose, torch.float64))
+    arr = {k: np.ascontiguousarray(v.detach().cpu().numpy()) for k, v in gaussians.tensors().items()}
+    N = gaussians.n
+    packed = np.empty((N, K.PACKED_COLS), dtype=np_dt)
+    uv64 = np.empty((N, 2), dtype=np.float64)
+    depth64 = np.empty(N, dtype=np.float64)
+    valid = np.empty(N, dtype=np.bool_)
+    counts = np.empty(N, dtype=np.int64)
+    cam = np.array([intr.fx, intr.fy, intr.cx, intr.cy, *intr.k, intr.theta_max], dtype=np.float64)
+    with _parallel(8 * N, 256):
+        K.project_kernel(
+            arr["means"], arr["log_scales"], arr["quats_wxyz"], arr["logit_opacities"], arr["sh0"],
+            arr["sh_rest"], int(sh_degree), R_cw, t_cw, campos, cam, float(near), float(far), float(dilation),
+            bool(compensate), intr.width, intr.height, packed, uv64, depth64, valid, counts,
+        )
+    return packed, uv64, depth64, valid, counts
+
+
+def _background(background, dtype: torch.dtype, H: int, W: int) -> Tensor:
+    if background is None:
+        return torch.zeros(3, dtype=dtype)
+    bg = torch.as_tensor(background).to(dtype)
+    if bg.shape not in ((3,), (H, W, 3)):
+        raise SplatError(f"background must have shape [3] or [H, W, 3] = [{H}, {W}, 3], got {list(bg.shape)}")
+    if not bool(torch.isfinite(bg.detach()).all()):
+        raise SplatError("background has non-finite values")
+    return bg
+
+
+def _compose(rgb_acc: Tensor, depth_acc: Tensor, T: Tensor, bg: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    rgb = rgb_acc + T[..., None] * bg
+    alpha = 1.0 - T
+    ray_depth = depth_acc / torch.clamp_min(alpha, 1e-10)
+    return rgb, alpha, ray_depth
+
+
+def render(
+    gaussians: Gaussians,
+    T_world_cam: Tensor | np.ndarray,  # [4, 4] camera pose (OpenCV camera frame), metres
+    intr: FisheyeIntrinsics,
+    background: Tensor | np.ndarray | Sequence[float] | None = None,  # [3] or [H, W, 3]
+    sh_degree: int | None = None,
+    *,
+    filter: Literal["inria", "mip", "none"] = DEFAULT_FILTER,
+    near: float = DEFAULT_NEAR,
+    far: float = DEFAULT_FAR,
+    projection: Literal["auto", "numba", "torch"] = "auto",
+) -> RenderOutput:
+    """Render a fisheye image of ``gaussians`` from ``T_world_cam`` (CPU, numba).
+
+    Differentiable with respect to every Gaussian parameter (and the pose and background if they require
+    grad) whenever autograd is on and something requires grad: the projection then runs in torch autograd and
+    the rasteriser as :class:`RasterizeGaussians`. Otherwise (``projection="auto"``) the projection runs in
+    numba too. The working dtype is the scene's (float32: fast path; float64: used by the tests).
+
+    Args:
+        gaussians: the scene.
+        T_world_cam: camera pose ``[4, 4]``.
+        intr: KB fisheye intrinsics; the image is ``intr.height x intr.width``.
+        background: RGB behind the Gaussians (default black).
+        sh_degree: SH degree to evaluate (default/maximum: the scene's).
+        filter: screen-space low-pass: ``"inria"`` (+0.3 px^2), ``"mip"`` (+0.1 px^2, opacity compensated),
+            ``"none"``.
+        near, far: Gaussians whose centre is closer than ``near`` or farther than ``far`` (metres, along the
+            ray) are culled.
+        projection: ``"auto"``, or force ``"numba"`` (no gradients) / ``"torch"``.
+
+    Returns:
+        :class:`RenderOutput`.
+    """
+    if not isinstance(gaussians, Gaussians):
+        raise SplatError(f"render expects a Gaussians, got {type(gaussians).__name__}")
+    if not isinstance(intr, FisheyeIntrinsics):
+        raise SplatError(f"render expects FisheyeIntrinsics, got {type(intr).__name__}")
+    if projection not in ("auto", "numba", "torch"):
+        raise SplatError(f"projection must be 'auto', 'numba' or 'torch', got {projection!r}")
+    check_filter(filter)
+    if not (0.0 <= near < far):
+        raise SplatError(f"need 0 <= near < far, got near={near!r}, far={far!r}")
+    dtype = gaussians.dtype
+    if dtype not in (torch.float32, torch.float64):
+        raise SplatError(f"render supports float32 and float64 scenes, got {dtype}")
+    H, W = intr.height, intr.width
+    bg = _background(background, dtype, H, W)
+    deg = gaussians.sh_degree if sh_degree is None else int(sh_degree)
+    if not 0 <= deg <= 3:
+        raise SplatError(f"sh_degree must be in [0, 3], got {sh_degree!r}")
+    deg = min(deg, gaussians.sh_degree)
+    pose_t = torch.as_tensor(T_world_cam)
+    needs_grad = torch.is_grad_enabled() and (
+        any(t.requires_grad for t in gaussians) or pose_t.requires_grad or bg.requires_grad
+    )
+    use_torch = projection == "torch" or (projection == "auto" and needs_grad)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if use_torch:
+        proj = project_gaussians(gaussians, pose_t, intr, deg, filter, near, far)
+        timings["project"] = time.perf_counter() - t0
+        stats: dict[str, Any] = {}
+        rgb_acc, depth_acc, T = RasterizeGaussians.apply(
+            proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, W, H, stats
+        )
+        timings["raster"] = time.perf_counter() - t0 - timings["project"]
+        rgb, alpha, ray_depth = _compose(rgb_acc, depth_acc, T, bg)
+        meta = {"ids": proj.ids, "means2d": proj.means2d, "projected": proj, "n_visible": len(proj), **stats}
+    else:
+        packed, uv64, depth64, valid, counts = project_numba(gaussians, pose_t, intr, deg, filter, near, far)
+        rows = np.flatnonzero(valid)
+        t1 = time.perf_counter()
+        timings["project"] = t1 - t0
+        binning = bin_gaussians(packed, rows, depth64[rows], W, H, counts[rows])
+        t2 = time.perf_counter()
+        timings["bin"] = t2 - t1
+        out = rasterize_packed(packed, binning, uv64)
+        timings["raster"] = time.perf_counter() - t2
+        # compose in numpy (single-threaded): on small images torch's thread pool only adds wake-up latency
+        bg_np = bg.detach().cpu().numpy().astype(out["rgb"].dtype)
+        T_np = out["T"]
+        rgb_np = out["rgb"]
+        rgb_np += T_np[..., None] * bg_np
+        alpha_np = 1.0 - T_np
+        depth_np = out["depth"]
+        np.divide(depth_np, np.maximum(alpha_np, 1e-10), out=depth_np)
+        rgb, alpha, ray_depth = (torch.from_numpy(a) for a in (rgb_np, alpha_np, depth_np))
+        ids = torch.from_numpy(rows)
+        meta = {
+            "ids": ids,
+            "means2d": torch.from_numpy(uv64[rows]).to(dtype),
+            "n_visible": int(rows.size),
+            "n_isects": binning.n_isects,
+            "n_evals": int(out["evals"].sum()),
+            "tiles": (binning.tiles_x, binning.tiles_y),
+        }
+    timings["total"] = time.perf_counter() - t0
+    meta["timings"] = timings
+    return RenderOutput(rgb=rgb, alpha=alpha, ray_depth=ray_depth, meta=meta)
