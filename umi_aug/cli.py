@@ -1,4 +1,4 @@
-"""Command line: ``umi-aug demo | make-session | validate | intrinsics``.
+"""Command line: ``umi-aug demo | make-session | reconstruct | validate | intrinsics``.
 
 ``umi-aug demo`` runs every stage that exists end to end on the built-in default scene and says which stages
 are not available yet. ``umi-aug validate PATH`` checks a UMI replay buffer (directory or ``.zarr.zip``).
@@ -118,6 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
     from umi_aug.sim.cli import add_make_session_parser  # imports neither MuJoCo nor OpenGL
 
     add_make_session_parser(sub)
+
+    from umi_aug.recon.cli import add_reconstruct_parser  # imports neither pycolmap nor open3d
+
+    add_reconstruct_parser(sub)
     return p
 
 

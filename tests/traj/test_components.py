@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from umi_aug.errors import TrajError
+from umi_aug.errors import GeometryError, TrajError
 from umi_aug.geometry import so3_log
 from umi_aug.traj import (
     CollisionSpheres,
@@ -162,9 +162,9 @@ def test_gripper_spheres_cover_fingers_at_width():
     T = np.eye(4)
     T[:3, 3] = [1, 2, 3]
     np.testing.assert_allclose(s.world(T), s.centers_cam + [1, 2, 3])
-    with pytest.raises(TrajError):
+    with pytest.raises(GeometryError):
         umi_gripper_spheres(-0.01)
-    with pytest.raises(TrajError):
+    with pytest.raises(GeometryError):
         CollisionSpheres(np.zeros((2, 3)), np.array([0.1, -0.1]), ("a", "b"))
 
 

@@ -13,7 +13,7 @@ Units: metres, radians, seconds.
 
 from umi_aug.traj.config import ObjectiveWeights, RRTConfig, SolverConfig, TimingConfig, TrajConfig
 from umi_aug.traj.generate import GenerateResult, generate
-from umi_aug.traj.gripper import CollisionSpheres, umi_gripper_spheres
+from umi_aug.geometry.gripper import CollisionSpheres, umi_gripper_spheres
 from umi_aug.traj.obstacle import ConvexObstacle
 from umi_aug.traj.plan import SolveResult, plan, solve
 from umi_aug.traj.problem import Demonstration, TrajProblem, TrajScene

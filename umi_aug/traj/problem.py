@@ -17,7 +17,7 @@ from umi_aug.errors import GeometryError, TrajError
 from umi_aug.geometry import rotation_geodesic_distance, sample_cone_start_poses
 from umi_aug.geometry.sdf import SignedDistanceField, check_sdf_output
 from umi_aug.traj.config import ObjectiveWeights, TrajConfig
-from umi_aug.traj.gripper import CollisionSpheres, umi_gripper_spheres
+from umi_aug.geometry.gripper import CollisionSpheres, umi_gripper_spheres
 from umi_aug.traj.objective import ObjectiveData, funnel_weights
 from umi_aug.traj.obstacle import ConvexObstacle
 from umi_aug.traj.render_prior import RenderPrior

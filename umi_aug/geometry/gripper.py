@@ -16,7 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
-from umi_aug.errors import TrajError
+from umi_aug.errors import GeometryError
 
 __all__ = ["CollisionSpheres", "umi_gripper_spheres"]
 
@@ -53,11 +53,11 @@ class CollisionSpheres:
         c = np.asarray(self.centers_cam, dtype=np.float64)
         r = np.asarray(self.radii, dtype=np.float64)
         if c.ndim != 2 or c.shape[1] != 3 or c.shape[0] < 1 or r.shape != (c.shape[0],):
-            raise TrajError(f"CollisionSpheres: centers_cam {c.shape} / radii {r.shape}; expected [S, 3] / [S]")
+            raise GeometryError(f"CollisionSpheres: centers_cam {c.shape} / radii {r.shape}; expected [S, 3] / [S]")
         if not (np.isfinite(c).all() and np.isfinite(r).all()) or np.any(r <= 0):
-            raise TrajError("CollisionSpheres: centres must be finite and radii finite and > 0")
+            raise GeometryError("CollisionSpheres: centres must be finite and radii finite and > 0")
         if len(self.names) != c.shape[0]:
-            raise TrajError(f"CollisionSpheres: {len(self.names)} names for {c.shape[0]} spheres")
+            raise GeometryError(f"CollisionSpheres: {len(self.names)} names for {c.shape[0]} spheres")
         object.__setattr__(self, "centers_cam", c)
         object.__setattr__(self, "radii", r)
 
@@ -87,7 +87,7 @@ def umi_gripper_spheres(widths: float | Sequence[float] = 0.08, include_body: bo
     """
     ws = np.atleast_1d(np.asarray(widths, dtype=np.float64))
     if ws.ndim != 1 or ws.size < 1 or not np.isfinite(ws).all() or np.any(ws < 0) or np.any(ws > 0.3):
-        raise TrajError(f"umi_gripper_spheres: widths {ws.tolist()} must be finite, in [0, 0.3] m")
+        raise GeometryError(f"umi_gripper_spheres: widths {ws.tolist()} must be finite, in [0, 0.3] m")
     centers, radii, names = [], [], []
     for w in np.unique(ws):
         for side, sgn in (("left", -1.0), ("right", 1.0)):

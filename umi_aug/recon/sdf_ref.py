@@ -1,0 +1,43 @@
+"""Slow reference of the scene SDF (:mod:`umi_aug.recon.sdf_grid`): brute-force nearest points, same sign rule,
+evaluated exactly at each query (no grid, no offset). For tests and the benchmark only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from umi_aug.recon.cloud import SceneCloud
+from umi_aug.recon.constants import SDF_SIGN_NEIGHBOURS
+from umi_aug.recon.sdf_grid import sign_vote
+
+__all__ = ["reference_sdf"]
+
+
+def reference_sdf(points_world: np.ndarray, cloud: SceneCloud, h: float, sign_neighbours: int = SDF_SIGN_NEIGHBOURS,
+                  chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance to the nearest cloud point and its gradient ``s·(q − p*)/‖q − p*‖``.
+
+    Args:
+        points_world: np.ndarray,  # [M, 3]
+        cloud: points + oriented normals.
+        h: softening length of the sign vote (the grid's voxel size, so the rule is identical).
+    Returns:
+        (sdf [M], grad [M, 3])
+    """
+    q = np.asarray(points_world, np.float64).reshape(-1, 3)
+    P = cloud.points
+    k = int(min(sign_neighbours, len(P)))
+    d_out = np.empty(len(q))
+    g_out = np.empty((len(q), 3))
+    for a in range(0, len(q), chunk):
+        qq = q[a:a + chunk]
+        D = np.sqrt(np.sum((qq[:, None, :] - P[None, :, :]) ** 2, axis=-1))  # [m, N] brute force
+        idx = np.argsort(D, axis=1, kind="stable")[:, :k]
+        dk = np.take_along_axis(D, idx, axis=1)
+        s = sign_vote(qq, P[idx], cloud.normals[idx], dk, h)
+        near = P[idx[:, 0]]
+        v = qq - near
+        nv = np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+        d_out[a:a + chunk] = s * dk[:, 0]
+        g_out[a:a + chunk] = s[:, None] * v / nv
+    return d_out, g_out
