@@ -23,6 +23,18 @@ def _slerp(R0: np.ndarray, R1: np.ndarray, s: np.ndarray) -> np.ndarray:
     return np.where((s == 1.0)[..., None, None], R1, out)
 
 
+def _broadcast(a: np.ndarray, b: np.ndarray, s: np.ndarray, names: tuple[str, str], who: str, mat: int):
+    """Broadcast two ``[..., mat, mat]`` arrays and a fraction ``s [...]`` to one batch shape (GeometryError if
+    they do not broadcast)."""
+    try:
+        batch = np.broadcast_shapes(a.shape[:-2], b.shape[:-2], s.shape)
+    except ValueError as exc:
+        raise GeometryError(
+            f"{who}: batch shapes of `{names[0]}` {a.shape}, `{names[1]}` {b.shape} and `s` {s.shape} do not broadcast"
+        ) from exc
+    return np.broadcast_to(a, batch + (mat, mat)), np.broadcast_to(b, batch + (mat, mat)), np.broadcast_to(s, batch)
+
+
 def slerp_rotations(R0: np.ndarray, R1: np.ndarray, s: np.ndarray | float) -> np.ndarray:
     """Geodesic interpolation between rotations.
 
@@ -36,13 +48,7 @@ def slerp_rotations(R0: np.ndarray, R1: np.ndarray, s: np.ndarray | float) -> np
     R0 = as_float(R0, "R0", "slerp_rotations", (3, 3))
     R1 = as_float(R1, "R1", "slerp_rotations", (3, 3))
     s = as_float(s, "s", "slerp_rotations")
-    try:
-        batch = np.broadcast_shapes(R0.shape[:-2], R1.shape[:-2], s.shape)
-    except ValueError as exc:
-        raise GeometryError(
-            f"slerp_rotations: batch shapes of `R0` {R0.shape}, `R1` {R1.shape} and `s` {s.shape} do not broadcast"
-        ) from exc
-    return _slerp(np.broadcast_to(R0, batch + (3, 3)), np.broadcast_to(R1, batch + (3, 3)), np.broadcast_to(s, batch))
+    return _slerp(*_broadcast(R0, R1, s, ("R0", "R1"), "slerp_rotations", 3))
 
 
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: np.ndarray | float) -> np.ndarray:
@@ -58,15 +64,7 @@ def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: np.ndarray | float) -> n
     T0 = as_float(T0, "T0", "interpolate_pose", (4, 4))
     T1 = as_float(T1, "T1", "interpolate_pose", (4, 4))
     s = as_float(s, "s", "interpolate_pose")
-    try:
-        batch = np.broadcast_shapes(T0.shape[:-2], T1.shape[:-2], s.shape)
-    except ValueError as exc:
-        raise GeometryError(
-            f"interpolate_pose: batch shapes of `T0` {T0.shape}, `T1` {T1.shape} and `s` {s.shape} do not broadcast"
-        ) from exc
-    T0 = np.broadcast_to(T0, batch + (4, 4))
-    T1 = np.broadcast_to(T1, batch + (4, 4))
-    s = np.broadcast_to(s, batch)
+    T0, T1, s = _broadcast(T0, T1, s, ("T0", "T1"), "interpolate_pose", 4)
     R = _slerp(T0[..., :3, :3], T1[..., :3, :3], s)
     t0, t1 = T0[..., :3, 3], T1[..., :3, 3]
     t = np.where((s == 1.0)[..., None], t1, t0 + s[..., None] * (t1 - t0))
