@@ -1,7 +1,9 @@
-"""Command line: ``umi-aug demo | make-session | reconstruct | validate | intrinsics``.
+"""Command line: ``umi-aug demo | augment | make-session | reconstruct | train-splat | validate | intrinsics |
+square-demos | square-convert | square-init-configs``.
 
-``umi-aug demo`` runs every stage that exists end to end on the built-in default scene and says which stages
-are not available yet. ``umi-aug validate PATH`` checks a UMI replay buffer (directory or ``.zarr.zip``).
+``umi-aug demo`` runs the whole method end to end on the built-in default scene (synthetic session →
+reconstruction → fisheye 3DGS → augmented episodes → UMI zarr → check against ground-truth renders).
+``umi-aug augment SESSION`` is the offline export on any UMI session. ``umi-aug validate PATH`` checks a UMI replay buffer (directory or ``.zarr.zip``).
 ``umi-aug make-session --out DIR`` renders a synthetic UMI session of the built-in MuJoCo scene.
 ``umi-aug intrinsics FILE`` prints a calibration (UMI/OpenICC JSON or ORB-SLAM3 yaml) and its 224² policy view.
 """
@@ -21,34 +23,34 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
+    from umi_aug.augment.exporter import summary_table
     from umi_aug.demo.pipeline import DemoConfig, run_demo
 
     console = Console()
-    cfg = DemoConfig(out_dir=Path(args.out), seed=args.seed, n_episodes=args.episodes, scan_frames=args.scan_frames)
+    cfg = DemoConfig(out_dir=Path(args.out), seed=args.seed, n_episodes=args.episodes, mode=args.mode,
+                     scan_frames=args.scan_frames, splat_iterations=args.splat_iterations)
     console.print(f"[bold]umi-aug demo[/bold] on the built-in MuJoCo tabletop scene (seed {cfg.seed}) → {cfg.out_dir}/")
-    summary = run_demo(cfg)
+    summary = run_demo(cfg, say=lambda msg: console.print(f"[cyan]›[/cyan] {msg}"))
 
-    t = Table(title="what ran")
+    from umi_aug.augment import ExportSummary
+
+    console.print(summary_table(ExportSummary(**summary["export"])))
+    t = Table(title="demo: what came out")
     t.add_column("item")
     t.add_column("value")
-    ri, pi = summary["render_intrinsics"], summary["policy_intrinsics"]
-    t.add_row("synthetic session", f"{summary['session']} ({summary['session_frames']} frames: scan + demo {summary['demo']})")
-    t.add_row("camera", f"render {ri['width']}×{ri['height']} f={ri['fx']:.2f}; policy {pi['width']}² f={pi['fx']:.2f} "
-              f"cx={pi['cx']:.2f} cy={pi['cy']:.2f}")
-    t.add_row("lens", f"KB model valid to θ = {summary['fold_over_deg']:.1f}° (fold-over); rays up to "
-              f"{summary['max_theta_seen_deg']:.1f}° rendered; cube faces {', '.join(summary['cube_faces_rendered'])} "
-              f"({summary['cube_face_size']}² px)")
-    t.add_row("new episodes", f"{summary['new_episodes']} optimised approaches into the demo's pre-grasp pose (frame "
-              f"{summary['splice_index']}; contact at {summary['contact_index']}), original motion after; "
-              f"{summary['new_frames_rendered']} new frames rendered")
-    t.add_row("trajectories", f"status {summary['trajectory_status_counts']}; min clearance "
-              f"{min(summary['min_clearance_mm']):.1f} mm (required ≥ {max(summary['required_clearance_mm']):.1f} mm); "
-              f"solver iterations {summary['solver_iterations']}")
-    t.add_row("start rotations vs demo start", ", ".join(f"{a:.0f}°" for a in summary["start_rotation_from_demo_start_deg"]))
-    t.add_row("dataset", f"{summary['dataset']} ({summary['dataset_episodes']} episodes, {summary['dataset_steps']} "
-              "steps; validated)")
+    sp, gt = summary["splat"], summary["ground_truth_check"]
+    t.add_row("dataset", f"{summary['dataset']}: {summary['dataset_episodes']} episodes "
+              f"({summary['export']['n_original']} original + {summary['export']['n_augmented']} augmented), "
+              f"{summary['dataset_steps']} steps, validated")
+    if sp.get("heldout_psnr") is not None:
+        t.add_row("3DGS scene", f"{sp.get('gaussians', '?')} Gaussians; held-out scan views PSNR "
+                  f"{sp['heldout_psnr']:.2f} dB, SSIM {sp.get('heldout_ssim', float('nan')):.3f}")
+    if gt:
+        t.add_row("augmented vs ground truth", f"{gt['frames']} free-space frames: PSNR median "
+                  f"{gt['psnr_db_median']:.2f} dB (min {gt['psnr_db_min']:.2f}; lens pixels, gripper overlay "
+                  f"excluded) → {gt['picture']}")
     for k, v in summary["timings"].items():
-        t.add_row(k, f"{v:.3f}")
+        t.add_row(k, f"{v:.1f}")
     console.print(t)
 
     s = Table(title="stages")
@@ -59,12 +61,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         colour = {"ran": "green", "not yet available": "yellow"}.get(row["status"], "cyan")
         s.add_row(row["stage"], f"[{colour}]{row['status']}[/{colour}]", row["what"])
     console.print(s)
-    console.print(
-        "Trajectories avoid the simulator's exact scene geometry (the reconstructed distance field is not wired in "
-        "yet) and new frames come from the simulator's ground-truth scene (the 3DGS renderer is not wired in yet).\n"
-        f"Pictures: {cfg.out_dir}/contact_sheet.png, trajectories.png, lens.png, session/contact_sheet.png; "
-        f"summary: {cfg.out_dir}/summary.json"
-    )
+    pics = ", ".join(str(v) for v in summary["export"]["pictures"].values())
+    console.print(f"Pictures: {pics}, {cfg.out_dir}/lens.png; summary: {cfg.out_dir}/summary.json")
     return 0
 
 
@@ -102,8 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="run all available stages end to end on the built-in default scene")
     d.add_argument("--out", default="umi_aug_demo", help="output folder (default: ./umi_aug_demo)")
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--episodes", type=int, default=4, help="new episodes generated from the demo")
+    d.add_argument("--episodes", type=int, default=4, help="augmented episodes per mode")
+    d.add_argument("--mode", choices=("freespace", "obstacle", "both"), default="both")
     d.add_argument("--scan-frames", type=int, default=120, help="frames of the synthetic mapping scan")
+    d.add_argument("--splat-iterations", type=int, default=1500, help="3DGS training steps")
     d.set_defaults(func=_cmd_demo)
 
     v = sub.add_parser("validate", help="validate a UMI replay buffer (directory or .zarr.zip)")
@@ -122,6 +122,18 @@ def build_parser() -> argparse.ArgumentParser:
     from umi_aug.recon.cli import add_reconstruct_parser  # imports neither pycolmap nor open3d
 
     add_reconstruct_parser(sub)
+
+    from umi_aug.splat.cli import add_train_splat_parser
+
+    add_train_splat_parser(sub)
+
+    from umi_aug.augment.cli import add_augment_parser
+
+    add_augment_parser(sub)
+
+    from umi_aug.sim.square.cli import add_square_parsers  # imports neither robosuite nor MuJoCo
+
+    add_square_parsers(sub)
     return p
 
 

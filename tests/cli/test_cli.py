@@ -4,6 +4,7 @@ message naming the input."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,26 +15,34 @@ from umi_aug.cli import main
 @pytest.mark.slow
 def test_demo_runs_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--episodes", "2", "--scan-frames", "8"]) == 0
-    for name in ("dataset.zarr.zip", "trajectories.png", "contact_sheet.png", "lens.png", "summary.json",
-                 "session/session.json", "session/dataset.zarr.zip", "session/contact_sheet.png"):
+    args = ["demo", "--out", str(out), "--episodes", "2", "--mode", "freespace", "--scan-frames", "30",
+            "--splat-iterations", "150"]
+    assert main(args) == 0
+    for name in ("dataset.zarr.zip", "dataset.zarr.zip.summary.json", "render_vs_gt.png", "lens.png",
+                 "summary.json", "session/session.json", "session/dataset.zarr.zip", "session/contact_sheet.png"):
         assert (out / name).is_file(), name
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["dataset_episodes"] == 3  # the original + 2 new
-    assert "back" not in summary["cube_faces_rendered"] and len(summary["cube_faces_rendered"]) == 5
+    assert summary["dataset_episodes"] == 3  # the original + 2 augmented
+    for pic in summary["export"]["pictures"].values():
+        assert Path(pic).is_file(), pic
     stages = {s["stage"]: s["status"] for s in summary["stages"]}
-    assert stages["geometry"] == stages["camera"] == stages["data"] == stages["sim"] == stages["traj"] == "ran"
-    assert all(c >= r for c, r in zip(summary["min_clearance_mm"], summary["required_clearance_mm"]))
-    assert stages["augment"] == "not yet available"
+    for name in ("geometry", "camera", "data", "sim", "recon", "splat", "traj", "augment"):
+        assert stages[name] == "ran", name
+    assert summary["splat"]["trained"] and summary["splat"]["heldout_psnr"] > 11.0  # 150 steps only
+    gt = summary["ground_truth_check"]
+    assert gt["frames"] > 0 and np.isfinite(gt["psnr_db_median"]) and gt["psnr_db_median"] > 12.0
     printed = capsys.readouterr().out
-    assert "not yet available" in printed  # honest about missing stages while they are missing
+    assert "augmented vs ground truth" in printed and "umi-aug augment" in printed
 
+    from umi_aug.augment import read_episode_records
     from umi_aug.data import ReplayBuffer
 
+    rec = read_episode_records(out / "dataset.zarr.zip")
+    assert rec["aug_mode"].tolist() == [0, 1, 1]
     buf = ReplayBuffer.open(out / "dataset.zarr.zip")
     orig, new = buf.get_episode(0), buf.get_episode(1)
-    c = summary["splice_index"]  # the demo's splice frame (pre-grasp)
-    n_new = len(new["robot0_eef_pos"]) - (len(orig["robot0_eef_pos"]) - c)  # frames before the splice
+    n_new = int(rec["aug_splice_index"][1])  # frames before the splice
+    c = len(orig["robot0_eef_pos"]) - (len(new["robot0_eef_pos"]) - n_new)  # the demo's splice frame
     assert new["camera0_rgb"].shape[1:] == (224, 224, 3)
     # after the splice the new episode replays the original motion and frames exactly
     np.testing.assert_array_equal(new["robot0_eef_pos"][n_new:], orig["robot0_eef_pos"][c:])
@@ -41,7 +50,12 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     # before it the approach is new: a different start pose and different (not blank) images
     assert np.linalg.norm(new["robot0_eef_pos"][0] - orig["robot0_eef_pos"][0]) > 0.01
     assert new["camera0_rgb"][0].std() > 10
+    buf.close()
     assert main(["validate", str(out / "dataset.zarr.zip")]) == 0
+    # a second run reuses the session and every cached stage
+    assert main(args) == 0
+    again = json.loads((out / "summary.json").read_text())
+    assert again["session_info"]["reused"] and all(v["skipped"] for v in again["export"]["stages"].values())
 
 
 def test_validate_bad_path_exits_2_naming_it(tmp_path, capsys):

@@ -106,14 +106,15 @@ def test_policy_predict_action_interface(dataset_path, tmp_path):
         pol.predict_action(obs, n_steps=17)
 
 
-def test_aug_other_than_none_is_a_clear_error(dataset_path, tmp_path):
-    for name in ("freespace", "obstacle"):
-        cfg = tiny_config(dataset_path, tmp_path)
-        cfg.aug.name = name
-        with pytest.raises(PolicyError, match=r"augmentation stage not available yet \(issue #9\)"):
-            TrainWorkspace(cfg)
+def test_aug_settings_are_checked(dataset_path, tmp_path):
     with pytest.raises(PolicyError, match="not an augmentation"):
         check_aug(structured_config({"aug": {"name": "nope"}}).aug)
+    for key, value in (("ratio", 1.0), ("ratio", -0.1), ("n_aug_per_demo", 0)):
+        cfg = tiny_config(dataset_path, tmp_path)
+        cfg.aug.name = "freespace"
+        setattr(cfg.aug, key, value)
+        with pytest.raises(PolicyError, match=f"aug.{key}"):
+            TrainWorkspace(cfg)
 
 
 def test_config_errors(dataset_path, tmp_path):
@@ -154,4 +155,4 @@ def test_train_py_smoke_subprocess(dataset_path, tmp_path):
     res = subprocess.run(_train_cmd(dataset_path, tmp_path / "aug_run", "aug=freespace"), capture_output=True,
                          text=True, env=env, cwd=tmp_path, timeout=300)
     assert res.returncode == 2
-    assert "augmentation stage not available yet (issue #9)" in res.stderr
+    assert "is not a UMI session folder (no demos/); set aug.session_dir" in res.stderr

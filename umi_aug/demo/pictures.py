@@ -101,3 +101,34 @@ def contact_sheet(
     fig.suptitle("policy images (224², UMI layout): original demo and new episodes (new frames up to the splice, "
                  "original frames after it)", fontsize=9)
     return _save(fig, path)
+
+
+def comparison_sheet(
+    ground_truth: np.ndarray,  # [K, S, S, 3] uint8 simulator renders
+    augmented: np.ndarray,  # [K, S, S, 3] uint8 augmented frames at the same poses
+    valid: np.ndarray,  # [S, S] bool pixels that count (inside the lens, outside the gripper overlay)
+    path: Path,
+    n_rows: int = 4,
+) -> Path:
+    """Rows of ground truth | augmented | absolute error (x4, invalid pixels grey) for ``n_rows`` evenly spaced
+    frames, each titled with its PSNR over the valid pixels."""
+    plt = _pyplot()
+    k = len(ground_truth)
+    rows = np.unique(np.linspace(0, k - 1, min(n_rows, k)).round().astype(int))
+    fig, axes = plt.subplots(len(rows), 3, figsize=(6.3, 2.1 * len(rows)), squeeze=False)
+    for r, i in enumerate(rows):
+        gt, aug = ground_truth[i].astype(np.float64), augmented[i].astype(np.float64)
+        err = np.abs(gt - aug).mean(-1)
+        mse = float(np.mean((gt - aug)[valid] ** 2))
+        psnr = 10 * np.log10(255.0 ** 2 / mse) if mse > 0 else float("inf")
+        shown = np.where(valid, np.clip(4 * err, 0, 255), 128).astype(np.uint8)
+        for c, (img, title) in enumerate(((ground_truth[i], "ground truth (sim)"),
+                                          (augmented[i], f"augmented (3DGS) {psnr:.1f} dB"),
+                                          (shown, "|error| x4"))):
+            a = axes[r, c]
+            a.imshow(img, cmap="gray" if img.ndim == 2 else None, vmin=0, vmax=255)
+            a.set_xticks([])
+            a.set_yticks([])
+            a.set_title(title, fontsize=7)
+    fig.suptitle("augmented frames vs simulator ground truth at the same poses", fontsize=9)
+    return _save(fig, path)

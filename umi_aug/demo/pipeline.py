@@ -1,22 +1,16 @@
-"""`umi-aug demo`: run every stage that exists today end to end on the built-in default scene.
+"""`umi-aug demo`: the whole method end to end on the built-in default scene (paper §3, Fig. 2).
 
-Today:
-
-1. **sim** — a synthetic UMI session of the built-in MuJoCo tabletop (mapping scan + one mug→plate demo,
-   rendered through the true GoPro fisheye, with ground truth): :func:`umi_aug.sim.session.make_session`.
-2. **traj** (+ geometry) — new start poses sampled in the paper's quaternion cone (θ = 50°, r = 0.15 m) around the
-   demo's first view; batched SE(3) trajectory optimisation (funnel, gripper-sphere collision, render prior,
-   smoothness; fixed ends) into the demo's pre-grasp pose, validated, retimed and spliced onto the original
-   post-grasp motion. The scene's distance field is the simulator's exact one (:mod:`umi_aug.sim.scene_sdf`),
-   standing in for the reconstructed one that is not wired in yet.
-3. **camera** — the new pre-grasp frames of each episode rendered through the Kannala–Brandt fisheye (cube faces
-   + remap) and turned into UMI policy images (gripper mask, crop, INTER_AREA); the rest is the original motion,
-   so its frames are the original frames (nothing re-rendered). The renderer is the simulator's ground-truth
-   scene, standing in for the 3DGS renderer that is not wired in yet.
-4. **data** — one UMI ``dataset.zarr.zip`` with the original and the new episodes, validated and read back.
-5. Pictures: the trajectories, a contact sheet original vs. new episodes, the lens geometry.
-
-Stages that are not built yet are listed as such; nothing is faked.
+1. **sim** — a synthetic UMI session of the built-in MuJoCo tabletop (mapping scan + one mug→plate demo through
+   the true GoPro fisheye, written like a real UMI session, ground truth beside it):
+   :func:`umi_aug.sim.session.make_session`. Reused when it already exists for the same settings.
+2. **augment** — :func:`umi_aug.augment.exporter` on that session, exactly what ``umi-aug augment`` runs:
+   reconstruction (SfM with the session's poses → cloud → distance field of the reachable region, contact
+   split) → fisheye 3DGS trained on the scan → per episode: cone start (θ = 50°, r = 0.15 m) (+ an obstacle
+   placed on the approach) → optimised trajectory → 3DGS frames with the real gripper overlaid → one UMI
+   ``dataset.zarr.zip`` (original + augmented episodes, per-episode records). Stages are cached in ``work/``.
+3. **check** — the simulator renders the ground truth at the augmented free-space poses; PSNR of the augmented
+   frames against it (pixels inside the lens circle, gripper overlay excluded), a comparison picture, and a
+   timing + error table (``summary.json``).
 """
 
 from __future__ import annotations
@@ -25,8 +19,9 @@ import importlib.util
 import json
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -39,186 +34,213 @@ STAGES: tuple[tuple[str, str, str], ...] = (
     ("data", "umi_aug.data", "UMI zarr replay buffer, camera_trajectory.csv (#2)"),
     ("sim", "umi_aug.sim", "MuJoCo fisheye scene, synthetic UMI session (#3)"),
     ("recon", "umi_aug.recon", "SfM, SDF, contact detection, obstacles (#5)"),
-    ("splat", "umi_aug.splat", "fisheye 3D Gaussian Splatting on CPU (#4)"),
+    ("splat", "umi_aug.splat", "fisheye 3D Gaussian Splatting on CPU: trainer, renderer, composition (#4)"),
     ("traj", "umi_aug.traj", "SE(3) trajectory optimisation, RRT* (#6)"),
-    ("augment", "umi_aug.augment", "augmentation pipeline and Dataset (#9)"),
-    ("policy", "umi_aug.policy", "Diffusion Policy with CLIP ViT-B/16 (#8)"),
-    ("eval", "umi_aug.eval", "RoboMimic square evaluation, UR deployment (#7)"),
+    ("augment", "umi_aug.augment", "augmentation pipeline, offline export (#9)"),
+    ("policy", "umi_aug.policy", "Diffusion Policy + CLIP ViT-B/16, AugmentedUmiDataset (#8, #9)"),
+    ("square", "umi_aug.sim.square", "RoboMimic square, fisheye wrist camera, expert, IK start configs (#7)"),
+    ("eval", "umi_aug.eval", "policy evaluation over the 1000 start configs, UR deployment"),
 )
 
-#: Stages this demo actually runs today.
-STAGES_RUN_BY_DEMO = frozenset({"geometry", "camera", "data", "sim", "traj"})
+#: Stages this demo runs.
+STAGES_RUN_BY_DEMO = frozenset({"geometry", "camera", "data", "sim", "recon", "splat", "traj", "augment"})
+#: How to run the stages the demo does not.
+NOT_RUN_HINT = {
+    "policy": "not run by the demo: python train/train.py task=demo (or aug=freespace task=session)",
+    "square": "not run by the demo: umi-aug square-demos / square-init-configs",
+}
 
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """Settings of the demo. Angles in radians unless named ``*_deg``; lengths in metres."""
+    """Settings of the demo (small defaults: ~10 minutes on 2 CPU cores). Lengths in metres."""
 
     out_dir: Path = Path("umi_aug_demo")
     seed: int = 0
+    #: augmented episodes per mode
     n_episodes: int = 4
+    #: "freespace", "obstacle" or "both"
+    mode: str = "both"
     scan_frames: int = 120
+    policy_size: int = 224
     cone_half_angle_deg: float = 50.0
     cone_radius_m: float = 0.15
-    max_extra_rotation_deg: float = 10.0
-    policy_size: int = 224
+    splat_iterations: int = 1500
+    splat_max_gaussians: int = 25_000
+    #: augmented (pre-splice) frames compared with ground-truth renders
+    gt_frames: int = 32
 
 
 def stage_status() -> list[tuple[str, str, str]]:
-    """(stage, status, description) for every stage of the method. Status is ``"ran"`` for stages the demo
-    runs, ``"present, not used by the demo yet"`` for a package that exists but is not wired in, and
-    ``"not yet available"`` otherwise (package looked up without importing it)."""
+    """(stage, status, description) for every stage: ``"ran"``, a hint for stages the demo leaves to their own
+    command, or ``"not yet available"`` (package looked up without importing it)."""
     rows = []
     for name, mod, desc in STAGES:
         if name in STAGES_RUN_BY_DEMO:
             status = "ran"
-        elif importlib.util.find_spec(mod) is not None:
-            status = "present, not used by the demo yet"
+        elif importlib.util.find_spec(mod.rsplit(".", 1)[0]) is not None and _has_module(mod):
+            status = NOT_RUN_HINT.get(name, "present, not run by the demo")
         else:
             status = "not yet available"
         rows.append((name, status, desc))
     return rows
 
 
-def run_demo(cfg: DemoConfig) -> dict:
-    """Run the demo; returns a summary dict (also written to ``out_dir/summary.json``)."""
-    from tqdm import tqdm
+def _has_module(mod: str) -> bool:
+    try:
+        return importlib.util.find_spec(mod) is not None
+    except ModuleNotFoundError:
+        return False
 
-    from umi_aug.camera import load_umi_intrinsics_json
+
+def _session(cfg: DemoConfig, say: Callable[[str], None]) -> tuple[Path, dict]:
+    """The synthetic session (made, or reused when it exists for the same settings)."""
+    from umi_aug.sim.session import make_session
+
+    session_dir = Path(cfg.out_dir) / "session"
+    marker = Path(cfg.out_dir) / "session.settings.json"
+    settings = {"seed": cfg.seed, "scan_frames": cfg.scan_frames, "policy_size": cfg.policy_size, "n_demos": 1}
+    if (session_dir / "dataset.zarr.zip").is_file() and marker.is_file() \
+            and json.loads(marker.read_text()) == settings:
+        say(f"sim: reusing the synthetic session {session_dir}")
+        return session_dir, {"reused": True}
+    say(f"sim: rendering a synthetic UMI session (scan {cfg.scan_frames} frames + 1 demo) → {session_dir}")
+    info = make_session(session_dir, seed=cfg.seed, n_demos=1, scan_frames=cfg.scan_frames,
+                        policy_size=cfg.policy_size, benchmark_frames=0, overwrite=True)
+    marker.write_text(json.dumps(settings))
+    return session_dir, {"reused": False, "frames": int(info["timings"]["frames_total"])}
+
+
+def _masked_psnr(a: np.ndarray, b: np.ndarray, valid: np.ndarray) -> float:
+    """PSNR (dB, 8-bit peak) of ``a`` vs ``b`` ``[..., H, W, 3]`` uint8 over ``valid`` ``[H, W]`` pixels."""
+    d = (a.astype(np.float64) - b.astype(np.float64))[..., valid, :]
+    mse = float(np.mean(d * d))
+    return float("inf") if mse == 0 else 10.0 * np.log10(255.0 ** 2 / mse)
+
+
+def compare_with_ground_truth(session_dir: Path, dataset: Path, assets, n_frames: int, out_png: Path,
+                              say: Callable[[str], None]) -> dict:
+    """Render the simulator's ground truth at augmented free-space poses and compare with the exported frames.
+
+    The pre-splice frames of the free-space episodes (the mug has not moved yet) are sampled evenly; the
+    simulator renders each pose at the session's raw intrinsics and UMI's policy transform makes the 224² view,
+    exactly as the session's own frames were made. PSNR is over pixels inside the lens circle and outside the
+    gripper overlay mask (those pixels are copied from real frames, not rendered).
+    """
+    from umi_aug.augment import plan_episode, read_episode_records
     from umi_aug.camera.umi_image import umi_policy_image
-    from umi_aug.data import ReplayBuffer, make_umi_episode, validate_replay_buffer
+    from umi_aug.data import ReplayBuffer
     from umi_aug.demo import pictures
-    from umi_aug.geometry import rotation_geodesic_distance
     from umi_aug.sim.fisheye_renderer import FisheyeRenderer
     from umi_aug.sim.gl import import_mujoco
     from umi_aug.sim.raster import RasterOptions
     from umi_aug.sim.scene import SCENE_FAR, SCENE_NEAR
-    from umi_aug.sim.scene_sdf import scene_sdf
-    from umi_aug.sim.session import make_session
     from umi_aug.sim.tabletop_state import TabletopState
-    from umi_aug.traj import Demonstration, TrajProblem, TrajScene, generate, plot_trajectories
 
-    timings: dict[str, float] = {}
+    rec = read_episode_records(dataset)
+    free = np.flatnonzero(rec["aug_mode"] == 1)
+    if len(free) == 0 or n_frames <= 0:
+        return {}
+    per_ep = max(1, n_frames // len(free))
+    S = assets.cfg.image_size
+    intr = assets.intrinsics
+    policy_intr = assets.policy_intrinsics
+    uu, vv = np.meshgrid(np.arange(S), np.arange(S))
+    from umi_aug.camera.kb import unproject
+
+    _, in_lens = unproject(np.stack([uu.ravel(), vv.ravel()], -1).astype(np.float64), policy_intr)
+    valid = in_lens.reshape(S, S) & ~assets.gripper_mask
+    mujoco = import_mujoco()
+    gt_dir = session_dir / "ground_truth"
+    model = mujoco.MjModel.from_xml_path(str(gt_dir / "scene" / "scene.xml"))
+    state = TabletopState(model)
+    buf = ReplayBuffer.open(dataset)
+    gts, augs, psnrs = [], [], []
+    try:
+        with FisheyeRenderer(model, intr, options=RasterOptions(near=SCENE_NEAR, far=SCENE_FAR)) as renderer:
+            for e in free:
+                d, a = int(rec["aug_source_episode"][e]), int(rec["aug_id"][e])
+                planned = plan_episode(assets, d, a, "freespace")
+                if planned is None:  # pragma: no cover - the export emitted it, so planning succeeds
+                    continue
+                demo_name = assets.demos[d].name
+                T_mug0 = np.load(gt_dir / demo_name / "trajectory.npz")["T_world_mug"][0]
+                ks = np.unique(np.linspace(0, planned.splice_index - 1, per_ep).round().astype(int))
+                sl = buf.get_episode_slice(int(e))
+                frames = buf["camera0_rgb"][sl][ks]
+                for k, frame in zip(ks, frames):
+                    state.set(planned.episode.T_world_cam[k], float(planned.episode.gripper_width[k]), T_mug0)
+                    raw = renderer.render(planned.episode.T_world_cam[k], state.data, rgb=True, depth=False).rgb
+                    gt = umi_policy_image(raw, intr, S)
+                    gts.append(gt)
+                    augs.append(frame)
+                    psnrs.append(_masked_psnr(frame, gt, valid))
+    finally:
+        buf.close()
+    gts_a, augs_a = np.stack(gts), np.stack(augs)
+    pictures.comparison_sheet(gts_a, augs_a, valid, out_png)
+    say(f"check: {len(psnrs)} augmented frames vs ground-truth renders: PSNR median {np.median(psnrs):.2f} dB")
+    return {"frames": len(psnrs), "psnr_db_median": float(np.median(psnrs)), "psnr_db_mean": float(np.mean(psnrs)),
+            "psnr_db_min": float(np.min(psnrs)), "psnr_db_all_pixels": _masked_psnr(augs_a, gts_a, valid),
+            "picture": str(out_png)}
+
+
+def run_demo(cfg: DemoConfig, say: Callable[[str], None] = log.info) -> dict:
+    """Run the demo; returns a summary dict (also written to ``out_dir/summary.json``)."""
+    from umi_aug.augment import AugmentConfig, SplatStageConfig, export, prepare_session
+    from umi_aug.data import validate_replay_buffer
+    from umi_aug.demo import pictures
+
+    t_all = time.perf_counter()
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(cfg.seed)
+    timings: dict[str, float] = {}
 
-    # 1. sim: the synthetic session (scan + one demo) --------------------------------------------------------
     t0 = time.perf_counter()
-    session_dir = out / "session"
-    session = make_session(session_dir, seed=cfg.seed, n_demos=1, scan_frames=cfg.scan_frames,
-                           policy_size=cfg.policy_size, benchmark_frames=0, overwrite=True)
-    timings["make_session_s"] = time.perf_counter() - t0
+    session_dir, session_info = _session(cfg, say)
+    timings["session_s"] = time.perf_counter() - t0
 
-    demo_name = sorted(p.name for p in (session_dir / "demos").iterdir() if p.name.startswith("demo_"))[0]
-    gt = np.load(session_dir / "ground_truth" / demo_name / "trajectory.npz")
-    events = json.loads((session_dir / "ground_truth" / demo_name / "events.json").read_text())["events"]
-    T_demo = gt["T_world_cam"]
-    widths = gt["gripper_width"]
-    T_mug = gt["T_world_mug"]
-    goal = int(events["pregrasp"])  # splice index: new approach up to here, original motion after it
-    contact = int(events["contact"])
-    original = ReplayBuffer.open(session_dir / "dataset.zarr.zip").get_episode(0)
-
-    mujoco = import_mujoco()
-    model = mujoco.MjModel.from_xml_path(str(session_dir / "ground_truth" / "scene" / "scene.xml"))
-    intr = load_umi_intrinsics_json(next((session_dir / "calibration").glob("gopro_intrinsics_*x*.json")))
-    state = TabletopState(model)
-
-    # 2. traj: cone-sampled starts, optimised trajectories into the pre-grasp pose, spliced -------------------
+    acfg = AugmentConfig(mode=cfg.mode, n_per_demo=cfg.n_episodes, seed=cfg.seed, image_size=cfg.policy_size,
+                         cone_half_angle_deg=cfg.cone_half_angle_deg, cone_radius_m=cfg.cone_radius_m,
+                         splat=SplatStageConfig(iterations=cfg.splat_iterations,
+                                                max_gaussians=cfg.splat_max_gaussians))
+    work = out / "work"
+    dataset = out / "dataset.zarr.zip"
+    say(f"augment: reconstruct → 3DGS ({cfg.splat_iterations} steps, ≤{cfg.splat_max_gaussians} Gaussians) → "
+        f"{cfg.n_episodes} episode(s) per mode ({cfg.mode}) → {dataset}")
     t0 = time.perf_counter()
-    state.set(T_demo[0], float(widths[0]), T_mug[0])  # the scene before contact: mug at its start pose
-    scan_poses = np.load(session_dir / "ground_truth" / "mapping" / "trajectory.npz")["T_world_cam"]
-    problem = TrajProblem(
-        Demonstration(T_world_cam=T_demo, timestamps=gt["timestamp"], gripper_width=widths, contact_index=goal),
-        TrajScene(sdf=scene_sdf(model, state.data), render_views=np.concatenate([scan_poses, T_demo[: goal + 1]])),
-    )
-    result = generate(problem, cfg.n_episodes, seed=cfg.seed, half_angle=np.deg2rad(cfg.cone_half_angle_deg),
-                      radius=cfg.cone_radius_m, max_extra_rotation=np.deg2rad(cfg.max_extra_rotation_deg))
-    episodes = result.episodes
-    timings["trajectory_generation_s"] = time.perf_counter() - t0
+    exp = export(session_dir, dataset, acfg, work_dir=work)
+    timings["augment_s"] = time.perf_counter() - t0
+    report = validate_replay_buffer(dataset)
 
-    # 3. camera: render only the new pre-grasp frames --------------------------------------------------------
     t0 = time.perf_counter()
-    new_frames: list[np.ndarray] = []
-    with FisheyeRenderer(model, intr, options=RasterOptions(near=SCENE_NEAR, far=SCENE_FAR)) as renderer:
-        remapper = renderer.cubemap
-        with tqdm(total=sum(ep.splice_index for ep in episodes), desc="render new pre-grasp frames",
-                  unit="frame") as bar:
-            for ep in episodes:
-                if not np.array_equal(ep.T_world_cam[ep.splice_index:], T_demo[ep.source_contact_index:]):
-                    raise RuntimeError("spliced episode does not replay the original motion after the splice")
-                frames = np.zeros((ep.splice_index, cfg.policy_size, cfg.policy_size, 3), np.uint8)
-                for k in range(ep.splice_index):
-                    state.set(ep.T_world_cam[k], float(ep.gripper_width[k]), T_mug[0])
-                    frame = renderer.render(ep.T_world_cam[k], state.data, rgb=True, depth=False)
-                    frames[k] = umi_policy_image(frame.rgb, intr, cfg.policy_size)
-                    bar.update(1)
-                new_frames.append(frames)
-    n_rendered = sum(len(f) for f in new_frames)
-    timings["render_s"] = time.perf_counter() - t0
-    timings["render_ms_per_frame"] = 1e3 * timings["render_s"] / max(1, n_rendered)
+    assets = prepare_session(session_dir, work, acfg, progress=False)  # cached: loads, runs nothing
+    check = compare_with_ground_truth(session_dir, dataset, assets, cfg.gt_frames, out / "render_vs_gt.png", say)
+    timings["ground_truth_check_s"] = time.perf_counter() - t0
 
-    # 4. data: original + new episodes in one UMI replay buffer ---------------------------------------------
     t0 = time.perf_counter()
-    buf = ReplayBuffer.create()
-    buf.add_episode(original)
-    for ep, frames in zip(episodes, new_frames):
-        images = np.concatenate([frames, original["camera0_rgb"][ep.source_contact_index :]])
-        buf.add_episode({**ep.umi_episode(), "camera0_rgb": images})
-    zarr_path = out / "dataset.zarr.zip"
-    buf.save(zarr_path)
-    report = validate_replay_buffer(zarr_path)
-    timings["dataset_write_validate_s"] = time.perf_counter() - t0
-
-    # 5. pictures --------------------------------------------------------------------------------------------
-    t0 = time.perf_counter()
-    reread = ReplayBuffer.open(zarr_path)
-    sheet_eps = [reread.get_episode(i, keys=["camera0_rgb"])["camera0_rgb"] for i in range(reread.n_episodes)]
-    pictures.contact_sheet(sheet_eps, out / "contact_sheet.png",
-                           splice_indices=[goal] + [ep.splice_index for ep in episodes],
-                           row_names=["original"] + [f"new {e}" for e in range(len(episodes))])
-    plot_trajectories(out / "trajectories.png", problem, episodes,
-                      title=f"{len(episodes)} optimised trajectories from a {cfg.cone_half_angle_deg:.0f}° cone "
-                            f"(r = {cfg.cone_radius_m} m) into the demo's pre-grasp pose")
-    pictures.lens_figure(intr.umi_policy(cfg.policy_size), out / "lens.png")
+    policy_intr = assets.policy_intrinsics
+    pictures.lens_figure(policy_intr, out / "lens.png")
     timings["pictures_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_all
 
-    T_start = T_demo[0]
-    starts = np.stack([ep.T_world_cam[0] for ep in episodes])
-    start_angles = np.degrees(rotation_geodesic_distance(starts[:, :3, :3], T_start[:3, :3]))
-    start_dist = np.linalg.norm(starts[:, :3, 3] - T_start[:3, 3], axis=-1)
-    reports = result.reports
-    policy_intr = intr.umi_policy(cfg.policy_size)
-    coverage = remapper.coverage_report()
+    splat_stage = assets.stages.get("splat")
+    splat_metrics = dict(splat_stage.info) if splat_stage is not None else {}
+    stage_seconds = {k: round(v.seconds, 2) for k, v in assets.stages.items()}
     summary = {
         "out_dir": str(out),
         "session": str(session_dir),
-        "session_frames": int(session["timings"]["frames_total"]),
-        "render_intrinsics": intr.to_dict(),
-        "policy_intrinsics": policy_intr.to_dict(),
-        "fold_over_deg": float(np.degrees(intr.theta_fold)),
-        "max_theta_seen_deg": float(coverage["max_theta_deg"]),
-        "cube_faces_rendered": list(coverage["faces_needed"]),
-        "cube_face_size": int(coverage["face_size"]),
-        "demo": demo_name,
-        "splice_index": goal,
-        "contact_index": contact,
-        "new_episodes": len(episodes),
-        "new_frames_rendered": n_rendered,
-        "trajectory_status_counts": dict(result.status_counts),
-        "min_clearance_mm": [round(1e3 * r.min_clearance, 1) for r in reports],
-        "required_clearance_mm": [round(1e3 * r.required_clearance, 1) for r in reports],
-        "solver_iterations": [int(r.iterations) for r in reports],
-        "solve_ms": [round(1e3 * r.solve_time_s, 1) for r in reports],
-        "start_rotation_from_demo_start_deg": [round(float(a), 1) for a in start_angles],
-        "start_distance_from_demo_start_m": [round(float(d), 3) for d in start_dist],
-        "dataset": str(zarr_path),
+        "session_info": session_info,
+        "dataset": str(dataset),
         "dataset_episodes": int(report.n_episodes),
         "dataset_steps": int(report.n_steps),
-        "timings": {k: round(v, 4) for k, v in {**timings, **{
-            "session_render_ms_per_frame": session["timings"]["ms_per_frame_including_writes"]}}.items()},
+        "export": asdict(exp),
+        "splat": splat_metrics,
+        "stage_seconds_this_run": exp.stages,
+        "ground_truth_check": check,
+        "timings": {k: round(v, 3) for k, v in timings.items()},
         "stages": [{"stage": n, "status": st, "what": d} for n, st, d in stage_status()],
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -20,7 +20,7 @@ from umi_aug.policy.config import (
 __all__ = [
     "TrainConfig", "TaskConfig", "PolicyConfig", "EncoderConfig", "SchedulerConfig", "AugConfig", "DeviceConfig",
     "DataloaderConfig", "TrainingConfig", "structured_config", "check_config", "check_aug", "shape_meta",
-    "ConditionalUnet1D", "LinearNormalizer", "ObsEncoder", "DiffusionUnetPolicy", "UmiPolicyDataset",
+    "ConditionalUnet1D", "LinearNormalizer", "ObsEncoder", "DiffusionUnetPolicy", "UmiPolicyDataset", "AugmentedUmiDataset",
     "TrainWorkspace", "Policy", "save_checkpoint", "load_checkpoint",
     "abs_actions_to_model", "model_actions_to_abs",
 ]
@@ -31,6 +31,7 @@ _LAZY = {
     "ObsEncoder": "umi_aug.policy.encoders",
     "DiffusionUnetPolicy": "umi_aug.policy.diffusion_policy",
     "UmiPolicyDataset": "umi_aug.policy.dataset",
+    "AugmentedUmiDataset": "umi_aug.policy.augmented_dataset",
     "TrainWorkspace": "umi_aug.policy.workspace",
     "Policy": "umi_aug.policy.inference",
     "save_checkpoint": "umi_aug.policy.checkpoint",

@@ -4,7 +4,8 @@ Layout follows UMI's ``train_diffusion_unet_timm_umi_workspace.yaml`` + ``task/u
 top-level :class:`TrainConfig` names the workspace class in ``_target_``; ``task`` describes the dataset and the
 UMI sampling (horizons, down-sampling, pose representation); ``policy`` the U-Net, the noise scheduler (its
 ``_target_`` is a diffusers scheduler class) and the observation encoder; ``aug`` the augmentation stage
-(``none`` only, for now); ``device`` where and how fast to run. Code reads these dataclasses, never raw dicts.
+(``none``, or on-the-fly ``freespace`` / ``obstacle`` / ``both``); ``device`` where and how fast to run. Code
+reads these dataclasses, never raw dicts.
 """
 
 from __future__ import annotations
@@ -14,8 +15,11 @@ from typing import Any, List, Optional
 
 from umi_aug.errors import PolicyError
 
-#: Names accepted by ``aug.name``; only ``none`` is implemented (the augmentation stage is issue #9).
-AUG_NAMES: tuple[str, ...] = ("none", "freespace", "obstacle")
+#: Names accepted by ``aug.name``: no augmentation, or on-the-fly augmentation in these modes.
+AUG_NAMES: tuple[str, ...] = ("none", "freespace", "obstacle", "both")
+#: The augmentation modes each ``aug.name`` draws from.
+AUG_MODES: dict[str, tuple[str, ...]] = {"none": (), "freespace": ("freespace",), "obstacle": ("obstacle",),
+                                         "both": ("freespace", "obstacle")}
 #: Observation-encoder backbones (``policy.encoder.name``).
 ENCODER_NAMES: tuple[str, ...] = ("clip_vit", "resnet")
 #: ``task.make_if_missing`` values: build the dataset when ``dataset_path`` does not exist.
@@ -119,11 +123,34 @@ class PolicyConfig:
 
 @dataclass
 class AugConfig:
-    """Action-view augmentation (issue #9). ``none`` trains on the original data only."""
+    """Action-view augmentation (issue #9; :class:`umi_aug.policy.augmented_dataset.AugmentedUmiDataset`).
+
+    ``none`` trains on the original data only. ``freespace`` / ``obstacle`` / ``both`` add on-the-fly augmented
+    samples: the session holding ``task.dataset_path`` (its scan, demos, calibration) is prepared once
+    (reconstruction, fisheye 3DGS, contact split; cached in ``work_dir``), then each augmented sample plans its
+    episode and renders only the frames it needs. To train on an offline export (``umi-aug augment``) instead,
+    use ``aug=none task.dataset_path=<export>.zarr.zip``.
+    """
 
     name: str = "none"
-    #: augmented UMI zarr(s) to add to the original data (used once the augmentation stage exists)
-    dataset_paths: List[str] = field(default_factory=list)
+    #: session folder (scan + demos + calibration); "" = the folder holding task.dataset_path
+    session_dir: str = ""
+    #: stage cache of the augmentation pipeline; "" = <session_dir>/augment
+    work_dir: str = ""
+    #: fraction of augmented samples per epoch, in [0, 1)
+    ratio: float = 0.5
+    #: distinct augmentations (start pose / obstacle) per demo
+    n_aug_per_demo: int = 1000
+    #: root seed of the augmentation (episodes) and of the slot draws
+    seed: int = 0
+    #: start-pose cone (paper: 50 deg, 0.15 m)
+    cone_half_angle_deg: float = 50.0
+    cone_radius_m: float = 0.15
+    #: 3DGS training of the session scene (iterations, Gaussian budget)
+    splat_iterations: int = 4000
+    splat_max_gaussians: int = 60000
+    #: planned episodes kept per DataLoader worker (LRU)
+    plan_cache_size: int = 256
 
 
 @dataclass
@@ -192,13 +219,13 @@ class TrainConfig:
 
 
 def check_aug(aug: AugConfig) -> None:
-    """Raise :class:`PolicyError` unless ``aug.name`` is implemented (only ``none`` today)."""
+    """Raise :class:`PolicyError` naming the field unless ``aug`` is a valid augmentation setting."""
     if aug.name not in AUG_NAMES:
         raise PolicyError(f"aug.name={aug.name!r} is not an augmentation; expected one of {list(AUG_NAMES)}")
-    if aug.name != "none":
-        raise PolicyError(
-            f"aug={aug.name}: augmentation stage not available yet (issue #9). Train on the original data with "
-            "aug=none; the augmented datasets will plug in here once the augmentation pipeline exists.")
+    if not 0.0 <= aug.ratio < 1.0:
+        raise PolicyError(f"config `aug.ratio` = {aug.ratio!r}: expected a fraction in [0, 1)")
+    if aug.n_aug_per_demo < 1:
+        raise PolicyError(f"config `aug.n_aug_per_demo` = {aug.n_aug_per_demo!r}: must be >= 1")
 
 
 def check_config(cfg: TrainConfig) -> None:

@@ -32,7 +32,7 @@ from umi_aug.policy.config import TaskConfig, shape_meta
 from umi_aug.policy.normalizer import LinearNormalizer, identity_params, range_params
 from umi_aug.policy.pose_repr import abs_actions_to_model, obs_pose_to_model, wrt_start_rot6d
 
-__all__ = ["UmiPolicyDataset", "get_val_mask", "sample_frame_indices"]
+__all__ = ["UmiPolicyDataset", "get_val_mask", "sample_frame_indices", "window_rows", "lowdim_from_rows", "to_sample"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +64,57 @@ def sample_frame_indices(cur: int, start: int, end: int, horizon: int, down_samp
     rgb = np.maximum(raw, cur - (n_valid - 1) * down_sample)
     low = np.clip(raw, start, end - 1)
     return rgb, low
+
+
+def window_rows(task: TaskConfig, cur: np.ndarray, start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """UMI's low-dim observation rows [N, h] and action rows [N, H] for current rows ``cur`` [N] of episodes
+    ``[start, end)`` (int64 arrays of the same shape; rows index the arrays the episode lives in)."""
+    d = task.obs_down_sample_steps
+    k = np.arange(task.low_dim_obs_horizon - 1, -1, -1, dtype=np.int64) * d
+    low = np.clip(cur[:, None] - k[None], start[:, None], end[:, None] - 1)
+    a = cur[:, None] + np.arange(task.action_horizon, dtype=np.int64)[None] * d
+    a = np.minimum(a, end[:, None] - 1)  # only reached with action_padding: repeat the last row
+    return low, a
+
+
+def lowdim_from_rows(task: TaskConfig, pose6: list[np.ndarray], gripper: list[np.ndarray],
+                     start_pose: list[np.ndarray], low: np.ndarray, a_rows: np.ndarray, cur: np.ndarray,
+                     noise_rng: np.random.Generator | None = None, start_pose_noise: float = 0.0
+                     ) -> dict[str, np.ndarray]:
+    """Low-dim observations and actions (float64) in the policy representation, per robot ``i`` from
+    ``pose6[i]`` [M, 6] (pos + rotvec, metres/radians), ``gripper[i]`` [M, 1] (metres) and, with ``wrt_start``,
+    ``start_pose[i]`` [M, 6]; ``low`` [N, h], ``a_rows`` [N, H], ``cur`` [N] index those rows."""
+    out: dict[str, np.ndarray] = {}
+    actions = []
+    for i in range(task.n_robots):
+        p6 = pose6[i]
+        pos, rot = p6[low, :3], p6[low, 3:]
+        T_cur = pos_rotvec_to_pose(p6[low[:, -1]])
+        mp, mr = obs_pose_to_model(pos, rot, task.obs_pose_repr)
+        out[f"robot{i}_eef_pos"], out[f"robot{i}_eef_rot_axis_angle"] = mp, mr
+        out[f"robot{i}_gripper_width"] = gripper[i][low]
+        if task.use_wrt_start:
+            sp = start_pose[i][cur].copy()
+            if noise_rng is not None and start_pose_noise > 0:
+                sp += noise_rng.normal(scale=start_pose_noise, size=sp.shape)
+            out[f"robot{i}_eef_rot_axis_angle_wrt_start"] = wrt_start_rot6d(pos, rot, sp)
+        a7 = np.concatenate([p6[a_rows], gripper[i][a_rows]], axis=-1)
+        # UMI's dataset converts actions with obs_pose_repr but deployment undoes them with action_pose_repr;
+        # both are "relative" by default — here action_pose_repr is used on both sides
+        actions.append(abs_actions_to_model(a7, T_cur, task.action_pose_repr))
+    out["action"] = np.concatenate(actions, axis=-1)
+    return out
+
+
+def to_sample(frames: dict[str, np.ndarray], lowdim: dict[str, np.ndarray], lowdim_keys: list[str]) -> dict[str, Any]:
+    """One training sample: ``frames[key]`` uint8 [h, H, W, 3] → float32 (h, 3, H, W) in [0, 1]; ``lowdim`` arrays
+    of ONE sample (incl. ``action``) → float32 tensors."""
+    obs: dict[str, torch.Tensor] = {}
+    for key, f in frames.items():
+        obs[key] = torch.from_numpy(np.ascontiguousarray(f.transpose(0, 3, 1, 2))).float().div_(255.0)
+    for key in lowdim_keys:
+        obs[key] = torch.from_numpy(lowdim[key].astype(np.float32))
+    return {"obs": obs, "action": torch.from_numpy(lowdim["action"].astype(np.float32))}
 
 
 class UmiPolicyDataset(torch.utils.data.Dataset):
@@ -178,39 +229,15 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
     # ------------------------------------------------------------------ sampling
     def _indices(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For sample indices ``idx`` [N]: low-dim obs rows [N, h], action rows [N, H], current rows [N]."""
-        t = self.task
         cur, start, end = self.indices[idx].T
-        d = t.obs_down_sample_steps
-        k = np.arange(t.low_dim_obs_horizon - 1, -1, -1, dtype=np.int64) * d
-        low = np.clip(cur[:, None] - k[None], start[:, None], end[:, None] - 1)
-        a = cur[:, None] + np.arange(t.action_horizon, dtype=np.int64)[None] * d
-        a = np.minimum(a, end[:, None] - 1)  # only reached with action_padding: repeat the last row
+        low, a = window_rows(self.task, cur, start, end)
         return low, a, cur
 
     def lowdim_batch(self, idx: np.ndarray, noise_rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
         """Low-dim observations and actions of samples ``idx`` [N] (float64, no images)."""
-        t = self.task
         low, a_rows, cur = self._indices(np.asarray(idx, dtype=np.int64))
-        out: dict[str, np.ndarray] = {}
-        actions = []
-        for i in range(t.n_robots):
-            p6 = self.pose6[i]
-            pos, rot = p6[low, :3], p6[low, 3:]
-            T_cur = pos_rotvec_to_pose(p6[low[:, -1]])
-            mp, mr = obs_pose_to_model(pos, rot, t.obs_pose_repr)
-            out[f"robot{i}_eef_pos"], out[f"robot{i}_eef_rot_axis_angle"] = mp, mr
-            out[f"robot{i}_gripper_width"] = self.gripper[i][low]
-            if t.use_wrt_start:
-                sp = self.start_pose[i][cur].copy()
-                if noise_rng is not None and self.start_pose_noise > 0:
-                    sp += noise_rng.normal(scale=self.start_pose_noise, size=sp.shape)
-                out[f"robot{i}_eef_rot_axis_angle_wrt_start"] = wrt_start_rot6d(pos, rot, sp)
-            a7 = np.concatenate([p6[a_rows], self.gripper[i][a_rows]], axis=-1)
-            # UMI's dataset converts actions with obs_pose_repr but deployment undoes them with action_pose_repr;
-            # both are "relative" by default — here action_pose_repr is used on both sides
-            actions.append(abs_actions_to_model(a7, T_cur, t.action_pose_repr))
-        out["action"] = np.concatenate(actions, axis=-1)
-        return out
+        return lowdim_from_rows(self.task, self.pose6, self.gripper, self.start_pose, low, a_rows, cur,
+                                noise_rng, self.start_pose_noise)
 
     def _noise_rng(self) -> np.random.Generator:
         key = (os.getpid(), torch.initial_seed())
@@ -242,15 +269,10 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
         if not 0 <= index < len(self):
             raise IndexError(f"sample index {index} out of range for {len(self)} samples")
         low = self.lowdim_batch(np.array([index]), self._noise_rng())
-        obs: dict[str, torch.Tensor] = {}
         cur, start, end = (int(v) for v in self.indices[index])
         rgb_rows, _ = sample_frame_indices(cur, start, end, t.img_obs_horizon, t.obs_down_sample_steps)
-        for key in self.rgb_keys:
-            frames = self.read_frames(key, rgb_rows)  # [h, H, W, 3] uint8
-            obs[key] = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2))).float().div_(255.0)
-        for key in self.lowdim_keys:
-            obs[key] = torch.from_numpy(low[key][0].astype(np.float32))
-        return {"obs": obs, "action": torch.from_numpy(low["action"][0].astype(np.float32))}
+        frames = {key: self.read_frames(key, rgb_rows) for key in self.rgb_keys}
+        return to_sample(frames, {k: v[0] for k, v in low.items()}, self.lowdim_keys)
 
     # ------------------------------------------------------------------ normaliser
     def fit_normalizer(self) -> LinearNormalizer:

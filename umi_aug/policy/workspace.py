@@ -43,6 +43,31 @@ __all__ = ["TrainWorkspace", "resolve_dataset_path", "seed_everything", "build_o
 log = logging.getLogger(__name__)
 
 
+def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: TrainConfig):
+    """``aug=freespace|obstacle|both``: prepare the session holding ``dataset_path`` (cached stages) and wrap the
+    original training split in an :class:`~umi_aug.policy.augmented_dataset.AugmentedUmiDataset`."""
+    from umi_aug.augment import AugmentConfig, SplatStageConfig, prepare_session
+    from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
+    from umi_aug.policy.config import AUG_MODES
+
+    a = cfg.aug
+    session = Path(a.session_dir).absolute() if a.session_dir else dataset_path.parent
+    if not (session / "demos").is_dir():
+        raise PolicyError(f"aug={a.name}: {session} is not a UMI session folder (no demos/); set aug.session_dir to the "
+                          "session (demos/mapping, demos/demo_*, calibration/) or train an offline export "
+                          "(`umi-aug augment`) with aug=none")
+    work = Path(a.work_dir).absolute() if a.work_dir else session / "augment"
+    modes = AUG_MODES[a.name]
+    acfg = AugmentConfig(mode=modes[0] if len(modes) == 1 else "both", seed=a.seed,
+                         cone_half_angle_deg=a.cone_half_angle_deg, cone_radius_m=a.cone_radius_m,
+                         image_size=cfg.task.image_size,
+                         splat=SplatStageConfig(iterations=a.splat_iterations, max_gaussians=a.splat_max_gaussians))
+    log.info("aug=%s: preparing session %s (cached in %s)", a.name, session, work)
+    assets = prepare_session(session, work, acfg)
+    return AugmentedUmiDataset(train, assets, modes, ratio=a.ratio, n_aug_per_demo=a.n_aug_per_demo, seed=a.seed,
+                               plan_cache_size=a.plan_cache_size)
+
+
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % (2 ** 32))
@@ -162,7 +187,7 @@ class TrainWorkspace:
         self.ckpt_path = self.output_dir / "checkpoints" / "latest.ckpt"
 
     # ------------------------------------------------------------------ pieces
-    def build_datasets(self) -> tuple[UmiPolicyDataset, UmiPolicyDataset]:
+    def build_datasets(self) -> tuple[torch.utils.data.Dataset, UmiPolicyDataset]:
         path = resolve_dataset_path(self.cfg)
         train = UmiPolicyDataset(path, self.cfg.task, "train")
         if len(train) == 0:
@@ -170,7 +195,10 @@ class TrainWorkspace:
                               f"((action_horizon-1)·down_sample+1 = "
                               f"{(self.cfg.task.action_horizon - 1) * self.cfg.task.obs_down_sample_steps + 1} "
                               "frames); lower task.obs_down_sample_steps or set task.action_padding=true")
-        return train, train.get_validation_dataset()
+        val = train.get_validation_dataset()
+        if self.cfg.aug.name == "none":
+            return train, val
+        return build_augmented_dataset(train, path, self.cfg), val
 
     def _loader(self, ds: UmiPolicyDataset, train: bool, epoch: int = 0) -> torch.utils.data.DataLoader:
         c, d = self.cfg.dataloader, self.cfg.device
@@ -237,6 +265,8 @@ class TrainWorkspace:
             while epoch < t.num_epochs and (t.max_steps is None or global_step < t.max_steps):
                 policy.train()
                 losses = []
+                if hasattr(train_set, "set_epoch"):
+                    train_set.set_epoch(epoch)
                 loader = self._loader(train_set, True, epoch)
                 epoch_done = True
                 bar = tqdm(loader, desc=f"epoch {epoch}", leave=False, disable=not t.progress_bar, mininterval=1.0)

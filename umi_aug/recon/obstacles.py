@@ -10,7 +10,8 @@ out by ``inflation``; exact inside/facet regions, a lower bound near edges).
 (the gripper spheres along the straight-line interpolation from the demo's first pose to its pre-contact pose hit
 the inflated hull) while the pre-contact approach tail, the pre-contact pose and the replayed post-contact motion
 keep ``clearance`` from it, and the obstacle does not intersect the reconstructed scene.
-Obstacle Gaussians (3DGS of the asset) are NOT built here (out of scope of this stage for now).
+Obstacle Gaussians (3DGS of the asset) are built downstream, by the splat stage:
+:func:`umi_aug.splat.obstacle_gaussians.obstacle_gaussians` (surface-sampled, fitted to orbit renders, cached).
 """
 
 from __future__ import annotations

@@ -8,24 +8,30 @@
 * :func:`render_reference`: the dense float64 torch oracle.
 * :mod:`umi_aug.splat.scenes`: procedural Gaussian scenes for tests and benchmarks.
 
-Importing this package imports torch; the renderers (numba, the ``splat`` extra) load on first access to
-:func:`render`, :class:`RasterizeGaussians`, :class:`RenderOutput` or :func:`render_reference`, so the scene
-model and PLY I/O work without numba. Kernels compile on first use and are cached on disk.
+* :func:`render_composed` / :class:`RenderCache`: a scene plus rigidly placed obstacle Gaussian sets, without
+  copying the scene per frame; :func:`umi_aug.splat.obstacle_gaussians.obstacle_gaussians`: Gaussians of an
+  obstacle mesh (cached per asset).
+* :func:`train_splat` / :func:`train_splat_from_session`: the fisheye 3DGS trainer.
+* :func:`render_with_backend`: ``"cpu"`` (default, the reference) or ``"gsplat"`` (CUDA, optional).
+
+Importing this package is cheap: every name loads its module on first access (torch with the scene model,
+numba with the renderers — the ``splat`` extra). Kernels compile on first use and are cached on disk.
 """
 
 from typing import Any
 
-from umi_aug.splat._constants import DEFAULT_FILTER, FILTER_DILATION
-from umi_aug.splat.gaussians import Gaussians
-from umi_aug.splat.ply import read_ply, write_ply
-from umi_aug.splat.project import Projected, project_gaussians
-from umi_aug.splat.sh import eval_sh, rgb_to_sh, sh_basis
-
 _LAZY = {
-    "render": "umi_aug.splat.renderer",
-    "RasterizeGaussians": "umi_aug.splat.renderer",
-    "RenderOutput": "umi_aug.splat.renderer",
-    "render_reference": "umi_aug.splat._torch_impl",
+    "DEFAULT_FILTER": "_constants", "FILTER_DILATION": "_constants",
+    "Gaussians": "gaussians",
+    "read_ply": "ply", "write_ply": "ply",
+    "Projected": "project", "project_gaussians": "project",
+    "eval_sh": "sh", "rgb_to_sh": "sh", "sh_basis": "sh",
+    "render": "renderer", "RasterizeGaussians": "renderer", "RenderOutput": "renderer",
+    "render_reference": "_torch_impl",
+    "render_composed": "compose", "PlacedGaussians": "compose", "RenderCache": "compose",
+    "render_with_backend": "gsplat_backend",
+    "SplatTrainConfig": "train", "TrainView": "train", "SplatTrainResult": "train", "train_splat": "train",
+    "train_splat_from_session": "train",
 }
 
 
@@ -33,24 +39,10 @@ def __getattr__(name: str) -> Any:
     if name in _LAZY:
         import importlib
 
-        value = getattr(importlib.import_module(_LAZY[name]), name)
+        value = getattr(importlib.import_module(f"umi_aug.splat.{_LAZY[name]}"), name)
         globals()[name] = value
         return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
-__all__ = [
-    "DEFAULT_FILTER",
-    "FILTER_DILATION",
-    "Gaussians",
-    "Projected",
-    "RasterizeGaussians",
-    "RenderOutput",
-    "eval_sh",
-    "project_gaussians",
-    "read_ply",
-    "render",
-    "render_reference",
-    "rgb_to_sh",
-    "sh_basis",
-    "write_ply",
-]
+
+__all__ = sorted(_LAZY)

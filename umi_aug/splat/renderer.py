@@ -31,6 +31,7 @@ from umi_aug.splat.project import camera_from_pose, check_filter, project_gaussi
 
 __all__ = [
     "RenderOutput", "Binning", "RasterizeGaussians", "render", "bin_gaussians", "rasterize_packed", "project_numba",
+    "compose_background_numpy",
 ]
 
 Tensor = torch.Tensor
@@ -308,6 +309,20 @@ def _compose(rgb_acc: Tensor, depth_acc: Tensor, T: Tensor, bg: Tensor) -> tuple
     return rgb, alpha, ray_depth
 
 
+def compose_background_numpy(out: dict[str, np.ndarray], bg: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Finish a :func:`rasterize_packed` result in place: background under the remaining transmittance,
+    ``alpha = 1 - T``, alpha-normalised ray depth → ``(rgb [H, W, 3], alpha [H, W], ray_depth [H, W])`` tensors.
+    Numpy, single-threaded: on small images torch's thread pool only adds wake-up latency."""
+    bg_np = bg.detach().cpu().numpy().astype(out["rgb"].dtype)
+    T_np = out["T"]
+    rgb_np = out["rgb"]
+    rgb_np += T_np[..., None] * bg_np
+    alpha_np = 1.0 - T_np
+    depth_np = out["depth"]
+    np.divide(depth_np, np.maximum(alpha_np, 1e-10), out=depth_np)
+    return torch.from_numpy(rgb_np), torch.from_numpy(alpha_np), torch.from_numpy(depth_np)
+
+
 def render(
     gaussians: Gaussians,
     T_world_cam: Tensor | np.ndarray,  # [4, 4] camera pose (OpenCV camera frame), metres
@@ -387,15 +402,7 @@ def render(
         timings["bin"] = t2 - t1
         out = rasterize_packed(packed, binning, uv64)
         timings["raster"] = time.perf_counter() - t2
-        # compose in numpy (single-threaded): on small images torch's thread pool only adds wake-up latency
-        bg_np = bg.detach().cpu().numpy().astype(out["rgb"].dtype)
-        T_np = out["T"]
-        rgb_np = out["rgb"]
-        rgb_np += T_np[..., None] * bg_np
-        alpha_np = 1.0 - T_np
-        depth_np = out["depth"]
-        np.divide(depth_np, np.maximum(alpha_np, 1e-10), out=depth_np)
-        rgb, alpha, ray_depth = (torch.from_numpy(a) for a in (rgb_np, alpha_np, depth_np))
+        rgb, alpha, ray_depth = compose_background_numpy(out, bg)
         ids = torch.from_numpy(rows)
         meta = {
             "ids": ids,

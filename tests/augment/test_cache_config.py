@@ -1,0 +1,64 @@
+"""Stage cache (skip when up to date, rerun when the config or an input changes) and config validation."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from umi_aug.augment.cache import read_manifest, run_stage
+from umi_aug.augment.config import AugmentConfig, config_hash
+from umi_aug.errors import AugmentError
+
+
+def _fn(calls, text):
+    def fn(out):
+        calls.append(text)
+        (out / "a.txt").write_text(text)
+        return {"a": "a.txt"}, ["a.txt"], {"n": len(calls)}
+    return fn
+
+
+def test_stage_runs_once_then_skips_and_reruns_on_change(tmp_path):
+    calls = []
+    r1 = run_stage("s", tmp_path, {"x": 1}, {"in": "k0"}, _fn(calls, "one"))
+    assert not r1.skipped and calls == ["one"] and r1.path("a").read_text() == "one"
+    r2 = run_stage("s", tmp_path, {"x": 1}, {"in": "k0"}, _fn(calls, "two"))
+    assert r2.skipped and r2.key == r1.key and calls == ["one"] and r2.path("a").read_text() == "one"
+    r3 = run_stage("s", tmp_path, {"x": 2}, {"in": "k0"}, _fn(calls, "three"))  # config changed
+    assert not r3.skipped and r3.key != r1.key and r3.path("a").read_text() == "three"
+    r4 = run_stage("s", tmp_path, {"x": 2}, {"in": "k1"}, _fn(calls, "four"))  # an input changed
+    assert not r4.skipped and r4.key != r3.key
+    (tmp_path / "s" / "a.txt").unlink()  # an output vanished → rerun
+    r5 = run_stage("s", tmp_path, {"x": 2}, {"in": "k1"}, _fn(calls, "five"))
+    assert not r5.skipped and calls[-1] == "five"
+    assert read_manifest(tmp_path / "s")["key"] == r5.key
+
+
+def test_stage_without_manifest_keeps_partial_outputs(tmp_path):
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "partial.bin").write_text("resume me")
+
+    def fn(out):
+        assert (out / "partial.bin").read_text() == "resume me"  # an interrupted run's files are kept
+        (out / "a.txt").write_text("x")
+        return {}, ["a.txt"], {}
+
+    run_stage("s", tmp_path, {}, {}, fn)
+
+
+def test_stage_missing_output_raises(tmp_path):
+    with pytest.raises(AugmentError, match="not written"):
+        run_stage("s", tmp_path, {}, {}, lambda out: ({}, ["nope.txt"], {}))
+    assert read_manifest(tmp_path / "s") is None
+
+
+def test_config_hash_and_validation():
+    a, b = AugmentConfig(), AugmentConfig(seed=1)
+    assert config_hash(a) == config_hash(AugmentConfig()) != config_hash(b)
+    assert json.dumps(config_hash(a))
+    assert AugmentConfig(mode="both").modes == ("freespace", "obstacle")
+    for bad in (dict(mode="nope"), dict(n_per_demo=-1), dict(cone_radius_m=0.0), dict(executor="dask"),
+                dict(image_size=0)):
+        with pytest.raises(AugmentError):
+            AugmentConfig(**bad)

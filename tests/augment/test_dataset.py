@@ -1,0 +1,190 @@
+"""The on-the-fly AugmentedUmiDataset: equals the offline export, deterministic, worker-safe, bounded caches."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tests.augment.conftest import SIZE, small_config
+
+
+def _task(**kw):
+    from umi_aug.policy.config import TaskConfig
+
+    base = dict(image_size=SIZE, obs_down_sample_steps=1, action_horizon=8, val_ratio=0.0)
+    base.update(kw)
+    return TaskConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def original(aug_session):
+    from umi_aug.policy.dataset import UmiPolicyDataset
+
+    return UmiPolicyDataset(aug_session / "dataset.zarr.zip", _task(), "train", start_pose_noise=0.0)
+
+
+@pytest.fixture(scope="module")
+def noisy_original(aug_session):
+    """UMI's training-split start-pose noise on (``task.start_pose_noise``)."""
+    from umi_aug.policy.dataset import UmiPolicyDataset
+
+    return UmiPolicyDataset(aug_session / "dataset.zarr.zip", _task(), "train")
+
+
+def _dataset(original, assets, **kw):
+    from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
+
+    base = dict(modes=("freespace",), ratio=0.5, n_aug_per_demo=3, seed=11)
+    base.update(kw)
+    return AugmentedUmiDataset(original, assets, **base)
+
+
+def _same(a, b, atol=0.0):
+    assert a.keys() == b.keys()
+    for k in a["obs"]:
+        torch.testing.assert_close(a["obs"][k], b["obs"][k], atol=atol, rtol=0)
+    torch.testing.assert_close(a["action"], b["action"], atol=atol, rtol=0)
+
+
+def test_layout_ratio_and_original_samples(original, aug_assets):
+    ds = _dataset(original, aug_assets, ratio=0.25)
+    n = len(original)
+    assert len(ds) == n + round(n * 0.25 / 0.75)
+    _same(ds[3], original[3])
+    with pytest.raises(IndexError):
+        ds[len(ds)]
+
+
+def test_augmented_samples_are_deterministic_and_render_only_the_window(noisy_original, aug_assets, rng):
+    """Same seed → same augmented samples, start-pose noise included (it comes from the slot's generator)."""
+    original = noisy_original
+    a, b = _dataset(original, aug_assets), _dataset(original, aug_assets)
+    n = len(original)
+    idx = [int(i) for i in rng.choice(np.arange(n, len(a)), size=3, replace=False)]
+    for i in idx:
+        _same(a[i], b[i])
+    s = a[idx[0]]
+    assert s["obs"]["camera0_rgb"].shape == (2, 3, SIZE, SIZE)
+    assert torch.isfinite(s["action"]).all() and s["action"].shape == (8, 10)
+    # only the observation window's frames were made: at most img_obs_horizon (2) distinct frames per sample
+    assert 0 < a.stats["frames_rendered"] <= 2 * (len(idx) + 1)
+    # a new epoch draws other slots; the same epoch again gives the same samples
+    a.set_epoch(1)
+    moved = [a.slot(j)[:3] for j in range(20)]
+    a.set_epoch(0)
+    assert [a.slot(j)[:3] for j in range(20)] != moved
+    _same(a[idx[1]], b[idx[1]])
+
+
+def test_plan_cache_is_bounded(original, aug_assets):
+    ds = _dataset(original, aug_assets, plan_cache_size=2, n_aug_per_demo=5)
+    for aug_id in range(4):
+        ds.planned(0, aug_id, "freespace")
+    assert len(ds._plans) == 2 and ds.stats["plans"] == 4
+    ds.planned(0, 3, "freespace")
+    assert ds.stats["plan_hits"] == 1
+
+
+def test_matches_the_offline_export(original, aug_session, aug_assets, tmp_path):
+    """The same (demo, aug_id, mode, step) gives the same sample on the fly and from ``umi-aug augment``'s zarr
+    (low-dim to float32 storage precision; images up to the export's JPEG-XL compression)."""
+    from umi_aug.augment import export, read_episode_records
+    from umi_aug.policy.dataset import UmiPolicyDataset
+
+    out = tmp_path / "export.zarr.zip"
+    export(aug_session, out, small_config(mode="freespace", n_per_demo=2), work_dir=aug_assets.work_dir,
+           progress=False, pictures=False)
+    rec = read_episode_records(out)
+    exported = UmiPolicyDataset(out, _task(), "all", start_pose_noise=0.0)
+    ds = _dataset(original, aug_assets)
+    checked = 0
+    for e in np.flatnonzero(rec["aug_mode"] == 1):
+        demo, aug_id = int(rec["aug_source_episode"][e]), int(rec["aug_id"][e])
+        start = 0 if e == 0 else int(exported.episode_ends[e - 1])
+        rows = np.flatnonzero(exported.indices[:, 1] == start)
+        for r in rows[[0, len(rows) // 2, -1]]:
+            cur = int(exported.indices[r, 0]) - start
+            on_the_fly = ds.augmented_sample(demo, aug_id, "freespace", cur)
+            offline = exported[int(r)]
+            torch.testing.assert_close(on_the_fly["action"], offline["action"], atol=2e-5, rtol=0)
+            for k in offline["obs"]:
+                if k != "camera0_rgb":
+                    torch.testing.assert_close(on_the_fly["obs"][k], offline["obs"][k], atol=2e-5, rtol=0)
+            diff = (on_the_fly["obs"]["camera0_rgb"] - offline["obs"]["camera0_rgb"]).abs()
+            psnr = 10 * np.log10(1.0 / max(float((diff ** 2).mean()), 1e-12))
+            assert psnr > 35.0, (e, cur, psnr)
+            checked += 1
+    assert checked >= 3
+
+
+def test_dataloader_workers_give_the_same_samples(original, aug_assets):
+    ds = _dataset(original, aug_assets, ratio=0.2)
+    n = len(original)
+    idx = list(range(n, min(len(ds), n + 4)))
+    sub = torch.utils.data.Subset(ds, idx)
+    serial = list(torch.utils.data.DataLoader(sub, batch_size=2, num_workers=0))
+    parallel = list(torch.utils.data.DataLoader(sub, batch_size=2, num_workers=2,
+                                                multiprocessing_context="spawn"))
+    for a, b in zip(serial, parallel):
+        _same(a, b)
+
+
+def test_normalizer_covers_augmented_episodes(original, aug_assets):
+    """The ranges are fitted over the original AND planned augmented episodes, so the relative actions of the
+    episodes it planned map into [-1, 1] (the original-only normaliser need not cover them)."""
+    ds = _dataset(original, aug_assets)
+    plain, wide = original.fit_normalizer(), ds.fit_normalizer(n_episodes=3)
+    assert plain.keys() == wide.keys()
+    s_plain, _ = plain.params("action")
+    s_wide, _ = wide.params("action")
+    assert (s_wide[:3] <= s_plain[:3] * (1 + 1e-5)).all()  # range scale = 2 / (max - min): never narrower
+    planned = [ds.planned(*ds.slot(k, 1_000_000)[:3]) for k in range(3)]
+    assert any(p is not None for p in planned)
+    pose6, grip, start = ds._episode_arrays(next(p for p in planned if p is not None))
+    from umi_aug.policy.dataset import lowdim_from_rows, window_rows
+
+    n = len(pose6[0])
+    cur = np.arange(ds.n_current_steps(n), dtype=np.int64)
+    low, a_rows = window_rows(original.task, cur, np.zeros_like(cur), np.full_like(cur, n))
+    act = torch.from_numpy(lowdim_from_rows(original.task, pose6, grip, start, low, a_rows, cur)["action"])
+    y = wide.normalize(act.float(), "action")
+    assert torch.isfinite(y).all() and y[..., :3].abs().max() <= 1.0 + 1e-4
+
+
+def test_bad_settings_are_named(original, aug_assets):
+    from umi_aug.errors import PolicyError
+
+    with pytest.raises(PolicyError, match="ratio"):
+        _dataset(original, aug_assets, ratio=1.0)
+    with pytest.raises(PolicyError, match="modes"):
+        _dataset(original, aug_assets, modes=("sideways",))
+    from umi_aug.policy.dataset import UmiPolicyDataset
+
+    other = UmiPolicyDataset(original.path, _task(image_size=SIZE), "train")
+    other.task = _task(image_size=2 * SIZE)
+    with pytest.raises(PolicyError, match="task.image_size"):
+        _dataset(other, aug_assets)
+
+
+@pytest.mark.slow  # prepares the session with the trainer's own settings (reconstruction again, ~30 s)
+def test_train_workspace_with_aug_freespace(aug_session, tmp_path):
+    """``aug=freespace`` end to end through the training workspace: the session holding task.dataset_path is
+    prepared, augmented samples are drawn, a few optimisation steps run and a checkpoint is written."""
+    from tests.policy.helpers import tiny_config
+    from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
+    from umi_aug.policy.workspace import TrainWorkspace
+
+    cfg = tiny_config(aug_session / "dataset.zarr.zip", tmp_path, image_size=SIZE, obs_down_sample_steps=1,
+                      action_horizon=8, val_ratio=0.0)
+    cfg.aug.name = "freespace"
+    cfg.aug.splat_iterations = 0  # SfM-initialised scene: the training loop, not the 3DGS quality, is tested
+    cfg.aug.work_dir = str(tmp_path / "aug_work")
+    cfg.aug.ratio = 0.5
+    cfg.training.max_steps = 3
+    ws = TrainWorkspace(cfg)
+    train, _ = ws.build_datasets()
+    assert isinstance(train, AugmentedUmiDataset) and train.n_augmented == len(train.original)
+    summary = ws.run()
+    assert (tmp_path / "run" / "checkpoints" / "latest.ckpt").is_file()
+    assert summary["train_samples"] == len(train)

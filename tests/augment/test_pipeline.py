@@ -1,0 +1,179 @@
+"""Session stages, per-episode planning and rendering on the small synthetic session."""
+
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from tests.augment.conftest import SIZE, small_config
+
+
+def test_stages_are_cached_and_skipped(aug_assets, aug_session, aug_work):
+    from umi_aug.augment import prepare_session
+
+    assert set(aug_assets.stages) == {"reconstruct", "contact", "splat", "gripper_mask", "obstacles"}
+    prepare_session(aug_session, aug_work, small_config(), progress=False)  # other tests may have used other configs
+    again = prepare_session(aug_session, aug_work, small_config(), progress=False)
+    assert all(r.skipped for r in again.stages.values())
+    assert {k: r.key for k, r in again.stages.items()} == {k: r.key for k, r in aug_assets.stages.items()}
+    # a free-space run does not need (and does not run) the obstacle stage
+    free = prepare_session(aug_session, aug_work, small_config(mode="freespace"), progress=False)
+    assert "obstacles" not in free.stages and all(r.skipped for r in free.stages.values())
+    # changing only the overlay settings reruns only the mask stage
+    from umi_aug.augment import OverlayConfig
+
+    other = prepare_session(aug_session, aug_work, small_config(mode="freespace",
+                            overlay=OverlayConfig(mask="estimated")), progress=False)
+    assert [k for k, r in other.stages.items() if not r.skipped] == ["gripper_mask"]
+    assert other.mask_info["source"] == "estimated" and other.gripper_mask.shape == (SIZE, SIZE)
+
+
+def test_assets_pickle_light(aug_assets):
+    _ = aug_assets.sdf, aug_assets.gaussians  # load the heavy members
+    blob = pickle.dumps(aug_assets)
+    assert len(blob) < 2_000_000
+    back = pickle.loads(blob)
+    assert back._lazy == {} and back.paths == aug_assets.paths
+    d = aug_assets.demos[0]
+    assert d.contact_index is not None and 0 < d.contact_index < len(d.T_world_cam)
+
+
+def _episode_bytes(planned, frames) -> bytes:
+    ep = planned.episode
+    return b"".join(np.ascontiguousarray(a).tobytes() for a in
+                    (ep.T_world_cam, ep.actions, ep.gripper_width, ep.timestamps, frames))
+
+
+def test_plan_and_render_are_deterministic_across_processes(aug_assets, tmp_path):
+    from umi_aug.augment import plan_episode, render_episode_frames
+
+    p1 = plan_episode(aug_assets, 0, 1, "freespace")
+    assert p1 is not None and p1.attempts >= 1
+    idx = [0, p1.splice_index // 2, p1.splice_index - 1, p1.splice_index, p1.n_frames - 1]
+    f1 = render_episode_frames(aug_assets, p1, idx)
+    assert f1.shape == (5, SIZE, SIZE, 3) and f1.dtype == np.uint8
+    # order independence: another episode first, then the same one again
+    plan_episode(aug_assets, 0, 0, "freespace")
+    p2 = plan_episode(aug_assets, 0, 1, "freespace")
+    assert _episode_bytes(p1, f1) == _episode_bytes(p2, render_episode_frames(aug_assets, p2, idx))
+    assert not np.array_equal(plan_episode(aug_assets, 0, 0, "freespace").episode.T_world_cam[0],
+                              p1.episode.T_world_cam[0])
+    # another process, from the pickled handle
+    (tmp_path / "assets.pkl").write_bytes(pickle.dumps(aug_assets))
+    code = textwrap.dedent(f"""
+        import pickle, sys, numpy as np
+        from umi_aug.augment import plan_episode, render_episode_frames
+        a = pickle.load(open(sys.argv[1], "rb"))
+        p = plan_episode(a, 0, 1, "freespace")
+        f = render_episode_frames(a, p, {idx})
+        ep = p.episode
+        sys.stdout.buffer.write(b"".join(np.ascontiguousarray(x).tobytes()
+                                for x in (ep.T_world_cam, ep.actions, ep.gripper_width, ep.timestamps, f)))
+    """)
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "assets.pkl")], capture_output=True,
+                         check=True, timeout=300)
+    assert out.stdout == _episode_bytes(p1, f1)
+
+
+def test_rendered_frames_carry_the_original_gripper_and_original_tail(aug_assets):
+    from umi_aug.augment import plan_episode, render_episode_frames
+    from umi_aug.augment.render import overlay_sources
+
+    p = plan_episode(aug_assets, 0, 0, "freespace")
+    ep = p.episode
+    new = np.arange(0, p.splice_index, 7)
+    frames = render_episode_frames(aug_assets, p, new)
+    src = aug_assets.original_frames(0, overlay_sources(aug_assets, p, new))
+    m = aug_assets.gripper_mask
+    assert m.any()
+    assert np.array_equal(frames[:, m], src[:, m])  # exactly the original gripper pixels in the mask
+    assert not np.array_equal(frames[:, ~m], src[:, ~m])  # the rest is rendered
+    # the overlay source has the closest width among the pre-contact frames
+    d = aug_assets.demos[0]
+    widths = d.gripper_width[: d.contact_index + 1]
+    chosen = widths[overlay_sources(aug_assets, p, new)]
+    assert np.all(np.abs(chosen - ep.gripper_width[new]) <= np.abs(widths[None] - ep.gripper_width[new, None]).min(1)
+                  + 5e-4)
+    # after the splice: the original frames, untouched
+    old = np.arange(p.splice_index, p.n_frames, 25)
+    orig = aug_assets.original_frames(0, ep.source_contact_index + (old - p.splice_index))
+    assert np.array_equal(render_episode_frames(aug_assets, p, old), orig)
+    # the actions keep the original gripper width after the splice, poses replay the demo
+    assert np.allclose(ep.gripper_width[p.splice_index:], d.gripper_width[ep.source_contact_index:])
+    assert np.array_equal(ep.T_world_cam[p.splice_index:], d.T_world_cam[ep.source_contact_index:])
+
+
+def test_obstacle_mode_never_emits_a_pose_inside_the_hull(aug_assets):
+    from umi_aug.augment import plan_episode, render_episode_frames
+    from umi_aug.traj import ConvexObstacle
+
+    n_checked = 0
+    for aug_id in range(2):
+        p = plan_episode(aug_assets, 0, aug_id, "obstacle")
+        assert p is not None, f"obstacle episode {aug_id} failed"
+        ob = p.obstacle
+        assert ob is not None and ob.asset in ("box", "bottle")
+        T = p.episode.T_world_cam
+        prob = aug_assets.traj_problem(0)
+        spheres = prob.sphere_points(T)  # [N, S, 3]
+        inflated = ob.convex_obstacle()
+        bare = ConvexObstacle(ob.hull_world, 0.0)
+        assert not bare.contains(T[:, :3, 3]).any()  # no camera centre inside the hull
+        assert not inflated.contains(spheres, prob.spheres.radii).any()  # no gripper sphere touches it
+        # the obstacle blocks the straight approach: the path really goes around it
+        assert inflated.plane_values(spheres).min() > 0
+        n_checked += len(T)
+    assert n_checked > 0
+    # obstacle frames: obstacle composited; gripper pixels exact in new frames
+    p = plan_episode(aug_assets, 0, 0, "obstacle")
+    k = [0, p.splice_index - 1, p.splice_index + 5]
+    frames = render_episode_frames(aug_assets, p, k)
+    m = aug_assets.gripper_mask
+    from umi_aug.augment.render import overlay_sources
+
+    src = aug_assets.original_frames(0, overlay_sources(aug_assets, p, k[:2]))
+    assert np.array_equal(frames[:2][:, m], src[:, m])
+    free = render_episode_frames(aug_assets, p.__class__(**{**p.__dict__, "obstacle": None}), k)
+    assert not np.array_equal(frames, free)  # the obstacle is visible somewhere
+
+
+def test_errors_name_the_problem(aug_assets):
+    from umi_aug.augment import plan_episode, render_episode_frames
+    from umi_aug.errors import AugmentError
+
+    with pytest.raises(AugmentError, match="mode"):
+        plan_episode(aug_assets, 0, 0, "sideways")
+    with pytest.raises(AugmentError, match="out of range"):
+        plan_episode(aug_assets, 5, 0, "freespace")
+    p = plan_episode(aug_assets, 0, 0, "freespace")
+    with pytest.raises(AugmentError, match="outside"):
+        render_episode_frames(aug_assets, p, [p.n_frames])
+
+
+@pytest.mark.slow  # 5-40 s on 2 shared cores, depending on load
+def test_real_3dgs_training_stage(aug_assets, aug_session, aug_work, tmp_path):
+    """The splat stage with the fisheye 3DGS trainer (a 40-step fit), reusing the cached reconstruction."""
+    import math
+    import shutil
+
+    from umi_aug.augment import SplatStageConfig, plan_episode, prepare_session, render_episode_frames
+
+    for stage in ("reconstruct", "contact"):
+        shutil.copytree(aug_work / stage, tmp_path / stage)
+    cfg = small_config(mode="freespace", splat=SplatStageConfig(
+        iterations=40, max_gaussians=3000, sh_degree=0, image_size=160,
+        extra={"eval_every": 40, "checkpoint_every": 40, "refine_start": 10, "refine_every": 10,
+               "train_eval_views": 2, "sheet_views": 1}))
+    a = prepare_session(aug_session, tmp_path, cfg, progress=False)
+    assert a.stages["reconstruct"].skipped and a.stages["contact"].skipped and not a.stages["splat"].skipped
+    info = a.stages["splat"].info
+    assert info["trained"] and math.isfinite(info["heldout_psnr"]) and 0 < info["gaussians"] <= 3000
+    assert prepare_session(aug_session, tmp_path, cfg, progress=False).stages["splat"].skipped
+    p = plan_episode(a, 0, 0, "freespace")
+    frames = render_episode_frames(a, p, [0, p.splice_index // 2])
+    assert frames[:, ~a.gripper_mask].std() > 5.0  # a scene, not a blank image

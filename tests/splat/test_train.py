@@ -1,0 +1,164 @@
+"""End-to-end trainer tests on a procedural scene rendered by our own renderer: the fit improves, resume equals an
+uninterrupted run, outputs are written (PLY round-trip), a finished run returns at once; session loading."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from umi_aug.errors import SplatError
+from umi_aug.splat import Gaussians, read_ply, render
+from umi_aug.splat.scenes import look_at_pose
+from umi_aug.splat.train import SplatTrainConfig, TrainView, train_splat
+from tests.splat._helpers import gopro_small
+
+SIZE = 48
+
+
+def _scene(rng, n=250) -> Gaussians:
+    """Coloured blobs in a 0.6 m cube around the origin."""
+    pts = rng.uniform(-0.3, 0.3, (n, 3))
+    g = Gaussians.from_points(pts, rng.uniform(0.05, 0.95, (n, 3)), rng.uniform(0.02, 0.05, n), 0.8, sh_degree=1)
+    return g
+
+
+def _views(rng, gt: Gaussians, n_views=8) -> tuple[list[TrainView], object]:
+    intr = gopro_small(SIZE, SIZE)
+    views = []
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE]
+    for k in range(n_views):
+        a = 2 * math.pi * k / n_views
+        pos = np.array([1.1 * math.cos(a), 1.1 * math.sin(a), 0.4 + 0.1 * math.sin(3 * a)])
+        T = look_at_pose(pos, np.zeros(3))
+        rgb = render(gt, T, intr, background=(0.1, 0.1, 0.1)).rgb.clamp(0, 1).numpy()
+        img = (rgb * 255 + 0.5).astype(np.uint8)
+        mask = np.hypot(xx - intr.cx, yy - intr.cy) < 0.45 * SIZE
+        mask &= ~((yy > 0.8 * SIZE) & (np.abs(xx - SIZE / 2) < 6))  # a "gripper" corner
+        views.append(TrainView(f"v{k:02d}", img, T, mask))
+    return views, intr
+
+
+CFG = SplatTrainConfig(iterations=100, max_gaussians=400, sh_degree=1, sh_increase_every=50, refine_start=20,
+                       refine_every=20, eval_every=50, checkpoint_every=50, lr_means=1e-3, init_scale=1.0,
+                       background=(0.1, 0.1, 0.1), train_eval_views=7, sheet_views=2)
+
+
+@pytest.fixture
+def problem(rng):
+    gt = _scene(rng)
+    views, intr = _views(rng, gt)
+    init = rng.uniform(-0.35, 0.35, (200, 3))
+    return views, intr, init
+
+
+def test_fit_improves_and_writes_outputs(problem, tmp_path, rng):
+    views, intr, init = problem
+    cfg = replace(CFG, seed=int(rng.integers(1000)))
+    res = train_splat(views, intr, init, None, cfg, tmp_path / "run", progress=False)
+    h0, h1 = res.history[0], res.history[-1]
+    assert h1["iteration"] == 100 and [h["iteration"] for h in res.history] == [0, 50, 100]
+    assert h1["train_psnr"] > h0["train_psnr"] + 6.0, res.history
+    assert h1["heldout_psnr"] > h0["heldout_psnr"] + 3.0, res.history
+    assert math.isfinite(res.heldout_ssim) and res.heldout_ssim > h0["heldout_ssim"]
+    assert res.gaussians.n <= cfg.max_gaussians and res.gaussians.n > 200
+    res.gaussians.validate()
+    for name in ("scene.ply", "checkpoint.pt", "metrics.json", "contact_sheet.png", "curve.png"):
+        assert (tmp_path / "run" / name).is_file(), name
+    assert res.ply_path == tmp_path / "run" / "scene.ply"
+    assert read_ply(res.ply_path) == res.gaussians
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["heldout_psnr"] == pytest.approx(res.heldout_psnr) and m["n_heldout_views"] == 1
+    sheet = cv2.imread(str(tmp_path / "run" / "contact_sheet.png"))
+    assert sheet.shape == (SIZE, 3 * SIZE, 3)  # one held-out view: GT | render | error
+    # a finished run returns at once with the same result
+    again = train_splat(views, intr, init, None, cfg, tmp_path / "run", progress=False)
+    assert again.gaussians == res.gaussians and again.heldout_psnr == pytest.approx(res.heldout_psnr)
+
+
+def test_resume_equals_uninterrupted(problem, tmp_path, rng):
+    views, intr, init = problem
+    cfg = replace(CFG, iterations=40, eval_every=20, checkpoint_every=1000, seed=int(rng.integers(1000)))
+    full = train_splat(views, intr, init, None, cfg, tmp_path / "a", progress=False)
+    part = train_splat(views, intr, init, None, cfg, tmp_path / "b", progress=False, stop_at=27)
+    assert part.ply_path is None and not (tmp_path / "b" / "scene.ply").exists()
+    assert (tmp_path / "b" / "checkpoint.pt").is_file()
+    resumed = train_splat(views, intr, init, None, cfg, tmp_path / "b", progress=False)
+    assert resumed.gaussians == full.gaussians
+    strip = lambda h: [{k: v for k, v in r.items() if "seconds" not in k and k != "loss"} for r in h]  # noqa: E731
+    assert strip(resumed.history) == strip(full.history)
+    assert [r["loss"] for r in resumed.history[1:]] == [r["loss"] for r in full.history[1:]]
+    # a different config must not silently resume
+    with pytest.raises(SplatError, match="other settings"):
+        train_splat(views, intr, init, None, replace(cfg, lr_sh0=1e-2), tmp_path / "b", progress=False)
+    # resume=False starts over and reproduces the same run (same seed -> same result)
+    again = train_splat(views, intr, init, None, cfg, tmp_path / "b", progress=False, resume=False)
+    assert again.gaussians == full.gaussians
+
+
+def test_bad_inputs(problem):
+    views, intr, init = problem
+    with pytest.raises(SplatError, match="image"):
+        bad = [TrainView("x", views[0].image[:10], views[0].T_world_cam, views[0].loss_mask)]
+        train_splat(bad, intr, init, progress=False)
+    with pytest.raises(SplatError, match="loss_mask"):
+        train_splat([TrainView("x", views[0].image, views[0].T_world_cam, np.zeros((SIZE, SIZE), bool))], intr,
+                    init, progress=False)
+    with pytest.raises(SplatError, match="init_xyz"):
+        train_splat(views, intr, np.full((3, 3), np.nan), progress=False)
+    with pytest.raises(SplatError, match="holdout_every"):
+        train_splat(views, intr, init, cfg=replace(CFG, holdout_every=1), progress=False)
+
+
+def test_session_views_and_masks(tmp_path, rng):
+    """A hand-made session folder (two scan frames, one demo) -> views, masks, resized intrinsics."""
+    from umi_aug.camera import gopro_intrinsics_2_7k, save_umi_intrinsics_json
+    from umi_aug.data import CameraTrajectory, write_camera_trajectory_csv
+    from umi_aug.splat.train_session import loss_mask, session_views
+
+    intr = gopro_intrinsics_2_7k().scaled(64, 48)
+    root = tmp_path / "sess"
+    (root / "calibration").mkdir(parents=True)
+    save_umi_intrinsics_json(intr, root / "calibration" / "gopro_intrinsics_64x48.json")
+    for seq, csv, n in (("mapping", "mapping_camera_trajectory.csv", 3), ("demo_a", "camera_trajectory.csv", 6)):
+        d = root / "demos" / seq / "images"
+        d.mkdir(parents=True)
+        for k in range(n):
+            cv2.imwrite(str(d / f"{k:06d}.png"), rng.integers(0, 256, (48, 64, 3)).astype(np.uint8))
+        T = np.repeat(np.eye(4)[None], n, 0)
+        T[:, 0, 3] = np.arange(n) * 0.1
+        lost = np.zeros(n, bool)
+        lost[1] = True
+        write_camera_trajectory_csv(root / "demos" / seq / csv, CameraTrajectory(
+            np.arange(n), np.arange(n) / 60.0, np.where(lost, 1, 2), lost, np.zeros(n, bool), T))
+    views, vi = session_views(root, contact={"demo_a": 4}, demo_stride=2)
+    assert [v.name for v in views] == ["mapping/000000", "mapping/000002", "demo_a/000000", "demo_a/000002",
+                                       "demo_a/000004"]
+    assert vi == intr
+    np.testing.assert_allclose(views[3].T_world_cam[0, 3], 0.2)
+    m = loss_mask(intr)
+    assert views[0].loss_mask.shape == (48, 64) and np.array_equal(views[0].loss_mask, m)
+    assert not m[-1, 32] and m[24, 32] and not m[0, 0]  # gripper/finger bottom centre, corner outside circle
+    views_small, vs = session_views(root, image_size=32)
+    assert (vs.width, vs.height) == (32, 24) and views_small[0].image.shape == (24, 32, 3)
+    assert [v.name for v in views_small] == ["mapping/000000", "mapping/000002"]  # no contact known: no demo
+    # end to end from the session folder, through the CLI (random init, a few steps)
+    import argparse
+
+    from umi_aug.splat.cli import add_train_splat_parser
+
+    ap = argparse.ArgumentParser()
+    add_train_splat_parser(ap.add_subparsers(dest="command"))
+    args = ap.parse_args(["train-splat", str(root), "--out", str(tmp_path / "out"), "--iterations", "3",
+                          "--max-gaussians", "300", "--contact", "demo_a=4", "--image-size", "32", "--no-progress"])
+    assert args.func(args) == 0
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert m["n_train_views"] + m["n_heldout_views"] == 4 and m["image_size"] == [32, 24]
+    assert m["n_gaussians"] == 300 and read_ply(tmp_path / "out" / "scene.ply").n == 300
+    with pytest.raises(SplatError, match="DEMO=FRAME"):
+        args = ap.parse_args(["train-splat", str(root), "--out", str(tmp_path / "o2"), "--contact", "demo_a"])
+        args.func(args)

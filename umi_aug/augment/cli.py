@@ -1,0 +1,70 @@
+"""``umi-aug augment SESSION --mode … -n … --out PATH``: the offline export from the command line (wired in
+umi_aug/cli.py)."""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["add_augment_parser", "cmd_augment", "config_from_args"]
+
+
+def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentParser:
+    """Add the ``augment`` sub-command (imports nothing heavy)."""
+    p = sub.add_parser("augment", help="augmented UMI dataset (original + new episodes) from a session")
+    p.add_argument("session", help="UMI session folder (demos/mapping, demos/demo_*, calibration/, dataset.zarr.zip)")
+    p.add_argument("--mode", choices=("freespace", "obstacle", "both"), default="freespace")
+    p.add_argument("-n", "--n-per-demo", type=int, default=4, help="augmented episodes per demo and mode")
+    p.add_argument("--out", required=True, help="output dataset (*.zarr.zip, or a zarr directory)")
+    p.add_argument("--work", default=None, help="stage cache folder (default <out>.work)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--image-size", type=int, default=224, help="policy image side (the session dataset's)")
+    p.add_argument("--cone-deg", type=float, default=50.0, help="start cone half-angle θ (degrees)")
+    p.add_argument("--cone-radius", type=float, default=0.15, help="start sphere radius r (metres)")
+    p.add_argument("--splat-iterations", type=int, default=4000, help="3DGS training steps (0 = untrained init)")
+    p.add_argument("--splat-max-gaussians", type=int, default=60_000)
+    p.add_argument("--sfm-mode", choices=("known_poses", "full"), default="known_poses")
+    p.add_argument("--obstacle", action="append", default=None, metavar="ASSET",
+                   help="obstacle asset (box/cylinder/bottle/mug or a mesh path); repeatable")
+    p.add_argument("--mask", choices=("auto", "predefined", "estimated"), default="auto", help="gripper overlay mask")
+    p.add_argument("--max-attempts", type=int, default=8, help="resamples per episode before it counts as failed")
+    p.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local: this process (1 worker) or spawned processes; ray: a Ray cluster")
+    p.add_argument("--workers", type=int, default=1, help="episodes planned/rendered in parallel")
+    p.add_argument("--ray-address", default=None, help="existing Ray cluster (default: start a local one)")
+    p.add_argument("--no-original", action="store_true", help="do not copy the original episodes")
+    p.add_argument("--restart", action="store_true", help="discard an interrupted export instead of resuming")
+    p.add_argument("--no-pictures", action="store_true")
+    p.set_defaults(func=cmd_augment)
+    return p
+
+
+def config_from_args(args: argparse.Namespace):
+    """The :class:`AugmentConfig` of parsed arguments."""
+    import dataclasses
+
+    from umi_aug.augment.config import AugmentConfig, ObstacleConfig, OverlayConfig, SplatStageConfig
+
+    base = AugmentConfig()
+    return AugmentConfig(
+        mode=args.mode, n_per_demo=args.n_per_demo, seed=args.seed, image_size=args.image_size,
+        cone_half_angle_deg=args.cone_deg, cone_radius_m=args.cone_radius, max_attempts=args.max_attempts,
+        splat=SplatStageConfig(iterations=args.splat_iterations, max_gaussians=args.splat_max_gaussians),
+        recon=dataclasses.replace(base.recon, sfm=dataclasses.replace(base.recon.sfm, mode=args.sfm_mode)),
+        obstacle=ObstacleConfig(assets=tuple(args.obstacle)) if args.obstacle else ObstacleConfig(),
+        overlay=OverlayConfig(mask=args.mask), include_original=not args.no_original,
+        executor=args.executor, workers=args.workers, ray_address=args.ray_address)
+
+
+def cmd_augment(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from umi_aug.augment.exporter import export, summary_table
+
+    cfg = config_from_args(args)
+    s = export(args.session, args.out, cfg, resume=not args.restart, work_dir=args.work,
+               pictures=not args.no_pictures)
+    console = Console()
+    console.print(summary_table(s))
+    for k, v in s.pictures.items():
+        console.print(f"{k}: {v}")
+    return 0 if s.n_failed == 0 else 3

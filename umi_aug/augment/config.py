@@ -1,0 +1,182 @@
+"""Typed settings of the augmentation pipeline (frozen dataclasses; Hydra/OmegaConf structured-config friendly).
+
+Units: metres, seconds; angles in degrees only where the name says ``*_deg``. Every random choice derives from
+``AugmentConfig.seed`` (see :func:`umi_aug.augment.plan.episode_seed`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from umi_aug.errors import AugmentError
+from umi_aug.recon.pipeline import ReconConfig
+from umi_aug.recon.sfm import SfmConfig
+from umi_aug.traj.config import TrajConfig
+
+__all__ = ["MODES", "SplatStageConfig", "ObstacleConfig", "OverlayConfig", "AugmentConfig", "config_hash",
+           "modes_of"]
+
+#: Augmentation modes of one episode (``both`` in :class:`AugmentConfig` runs each of them).
+MODES: tuple[str, ...] = ("freespace", "obstacle")
+
+
+@dataclass(frozen=True)
+class SplatStageConfig:
+    """Fisheye 3DGS training of the scene (passed to ``umi_aug.splat.train.SplatTrainConfig``).
+
+    Attributes:
+        iterations: optimisation steps; max_gaussians: densification budget; sh_degree: 0..3;
+        holdout_every: every n-th frame held out for PSNR/SSIM; image_size: training width (height keeps the
+        aspect ratio) or None (the frames' size); extra: further ``SplatTrainConfig`` fields by name (e.g.
+        learning rates). ``iterations = 0``: no training, the SfM-initialised Gaussians (smoke runs only).
+    """
+
+    iterations: int = 4000
+    max_gaussians: int = 60_000
+    sh_degree: int = 3
+    holdout_every: int = 8
+    image_size: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ObstacleConfig:
+    """Obstacle augmentation (paper §3.2/§3.3): an asset placed where it blocks the demo's straight approach.
+
+    Attributes:
+        assets: procedural asset names (:data:`umi_aug.recon.obstacles.PROCEDURAL_ASSETS`) or mesh file paths;
+            each episode draws one (seeded).
+        scale_range: uniform scale factor drawn per episode.
+        inflation_m: convex-hull inflation used by the trajectory constraint and the final frame check.
+        clearance_m: clearance of the demo's pre-contact tail and post-contact motion from the inflated hull.
+        fit_gaussians: fit the obstacle Gaussians to renders of the mesh (else: surface-sampled init only).
+        n_gaussians: Gaussians per obstacle asset.
+        placement_tries: candidate placements per attempt (:func:`umi_aug.recon.sample_obstacle_placement`).
+    """
+
+    assets: tuple[str, ...] = ("box", "bottle", "cylinder")
+    scale_range: tuple[float, float] = (1.0, 1.3)
+    inflation_m: float = 0.01
+    clearance_m: float = 0.015
+    fit_gaussians: bool = True
+    n_gaussians: int = 6000
+    placement_tries: int = 2000
+
+
+@dataclass(frozen=True)
+class OverlayConfig:
+    """Gripper overlay (paper §3.4): real gripper pixels composited onto every rendered frame.
+
+    Attributes:
+        mask: ``"predefined"`` (UMI's gripper polygons + finger trapezoid at policy resolution), ``"estimated"``
+            (low temporal variance over the demos' pre-contact frames), or ``"auto"`` (predefined when it covers
+            the estimate, else the estimate).
+        feather_px: width of the outward alpha ramp at the mask edge (pixels; 0 = hard edge). Pixels inside the
+            mask are always exactly the original's.
+        std_threshold: grey-level temporal std (0..255) below which a pixel counts as static (estimate).
+        min_coverage: ``"auto"``: minimal fraction of the estimated static region inside the predefined mask.
+    """
+
+    mask: str = "auto"
+    feather_px: float = 2.0
+    std_threshold: float = 6.0
+    min_coverage: float = 0.9
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Everything :func:`umi_aug.augment.prepare_session`, :func:`plan_episode` and :func:`export` need.
+
+    Attributes:
+        mode: ``"freespace"``, ``"obstacle"`` or ``"both"`` (each demo gets ``n_per_demo`` episodes per mode).
+        n_per_demo: augmented episodes per demo and mode.
+        seed: root seed of every random choice.
+        cone_half_angle_deg / cone_radius_m / max_extra_rotation_deg: the start-pose cone (paper θ, r).
+        image_size: policy image side S (UMI: 224); frames are rendered directly at ``intr.umi_policy(S)``.
+        max_attempts: start poses (and obstacle placements) tried per episode before it is reported failed.
+        pregrasp_clearance_m: the splice (pre-contact) frame is the last frame before the detected contact whose
+            gripper keeps this clearance from the reconstructed scene (the contact frame itself touches it, and
+            the trajectory validation needs free space around its goal).
+        splat / recon / obstacle / overlay / traj: stage settings.
+        render_near_m / render_far_m: 3DGS culling distances.
+        executor / workers: how the export's episodes are planned and rendered
+            (:func:`umi_aug.augment.executor.map_ordered`: ``"local"`` with 1 worker = this process, more =
+            spawned processes; ``"ray"``); results are written in job order either way (same dataset).
+        ray_address: an existing Ray cluster (``"auto"``, ``"ray://host:10001"``); None = a local cluster with
+            ``workers`` CPUs.
+        include_original: copy the original episodes first in the exported dataset.
+    """
+
+    mode: str = "freespace"
+    n_per_demo: int = 4
+    seed: int = 0
+    cone_half_angle_deg: float = 50.0
+    cone_radius_m: float = 0.15
+    max_extra_rotation_deg: float = 10.0
+    image_size: int = 224
+    max_attempts: int = 8
+    pregrasp_clearance_m: float = 0.02
+    splat: SplatStageConfig = field(default_factory=SplatStageConfig)
+    recon: ReconConfig = field(default_factory=lambda: ReconConfig(sfm=SfmConfig(mode="known_poses")))
+    obstacle: ObstacleConfig = field(default_factory=ObstacleConfig)
+    overlay: OverlayConfig = field(default_factory=OverlayConfig)
+    traj: TrajConfig = field(default_factory=TrajConfig)
+    render_near_m: float = 0.01
+    render_far_m: float = 20.0
+    executor: str = "local"
+    workers: int = 1
+    ray_address: str | None = None
+    include_original: bool = True
+
+    def __post_init__(self) -> None:
+        if self.mode not in (*MODES, "both"):
+            raise AugmentError(f"AugmentConfig.mode = {self.mode!r}; expected one of {(*MODES, 'both')}")
+        for name in ("n_per_demo", "max_attempts", "image_size", "workers"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_per_demo" else 1):
+                raise AugmentError(f"AugmentConfig.{name} = {v!r}; expected a positive int")
+        if not 0.0 <= self.cone_half_angle_deg <= 180.0:
+            raise AugmentError(f"AugmentConfig.cone_half_angle_deg = {self.cone_half_angle_deg}; expected [0, 180]")
+        if not (self.cone_radius_m > 0 and math.isfinite(self.cone_radius_m)):
+            raise AugmentError(f"AugmentConfig.cone_radius_m = {self.cone_radius_m}; expected metres > 0")
+        if self.executor not in ("local", "ray"):
+            raise AugmentError(f"AugmentConfig.executor = {self.executor!r}; expected 'local' or 'ray'")
+        if self.overlay.mask not in ("predefined", "estimated", "auto"):
+            raise AugmentError(f"OverlayConfig.mask = {self.overlay.mask!r}; expected predefined/estimated/auto")
+        if not self.obstacle.assets and self.mode != "freespace":
+            raise AugmentError("ObstacleConfig.assets is empty but the mode needs obstacles")
+
+    @property
+    def modes(self) -> tuple[str, ...]:
+        """The per-episode modes this config runs, in export order."""
+        return modes_of(self.mode)
+
+
+def modes_of(mode: str) -> tuple[str, ...]:
+    """``"both"`` → ``("freespace", "obstacle")``; a single mode → ``(mode,)``."""
+    return MODES if mode == "both" else (mode,)
+
+
+def _jsonable(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return repr(obj)
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    return repr(obj)
+
+
+def config_hash(*parts: Any) -> str:
+    """sha256 (hex, 16 chars) of the canonical JSON of ``parts`` (dataclasses, dicts, lists, scalars)."""
+    text = json.dumps(_jsonable(list(parts)), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]

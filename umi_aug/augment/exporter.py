@@ -1,0 +1,502 @@
+"""Offline export (paper §3.4 data compilation): original + augmented episodes in one UMI replay buffer.
+
+Layout: the UMI keys (``robot0_*``, ``camera0_rgb`` at ``S x S``) that UMI's and our trainer read unchanged, plus
+per-episode records as extra ``meta/`` arrays of length E (UMI copies ``meta/`` whole and never indexes them;
+``data/`` stays UMI's): ``aug_source_episode`` (original demo index), ``aug_mode`` (0 original, 1 freespace,
+2 obstacle — :data:`umi_aug.augment.plan.MODE_CODES`), ``aug_id`` (−1 for originals), ``aug_seed`` (derived
+seed), ``aug_attempts`` (1 = no resampling), ``aug_splice_index`` (first replayed frame), ``aug_job`` (job number).
+Root attribute ``umi_aug_export`` holds the run key, the job list size, failures and progress.
+
+Resumability: jobs run in a fixed order (demo, mode, aug_id) and every one is deterministic on its own. The
+working store is a zarr directory (``<out>`` itself, or ``<out>.partial`` for a ``.zip`` output that is written at
+the end). Per episode the meta records are grown first, then :meth:`ReplayBuffer.add_episode` writes the data
+and commits ``meta/episode_ends`` last; after a kill, :meth:`ReplayBuffer.open` with ``repair=True`` truncates a
+half-written append, the records are cut to the committed episodes, and the run continues after the last job
+that finished (an episode committed or a failure recorded) — nothing duplicated, nothing lost.
+
+Original episodes are copied as stored (compressed chunks, no re-encoding); new frames are JPEG-XL encoded by the
+replay buffer's UMI codec.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import pickle
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from umi_aug.augment.config import AugmentConfig, config_hash
+from umi_aug.augment.executor import map_ordered
+from umi_aug.augment.plan import MODE_CODES, PlannedEpisode, episode_seed, try_plan_episode
+from umi_aug.augment.render import render_episode_frames
+from umi_aug.augment.session_assets import SessionAssets, prepare_session, session_fingerprint
+from umi_aug.errors import AugmentError, UmiAugError
+from umi_aug.io_utils import atomic_path, atomic_write_text
+
+__all__ = ["ExportSummary", "export", "export_jobs", "RECORD_KEYS", "read_episode_records", "summary_table"]
+
+log = logging.getLogger(__name__)
+
+#: Per-episode record arrays in ``meta/`` (name → dtype).
+RECORD_KEYS: dict[str, str] = {"aug_source_episode": "int64", "aug_mode": "int8", "aug_id": "int64",
+                               "aug_seed": "int64", "aug_attempts": "int16", "aug_splice_index": "int64",
+                               "aug_job": "int64"}
+ATTR = "umi_aug_export"
+RECORD_CHUNK = 1024
+
+
+@dataclass
+class ExportSummary:
+    """What :func:`export` did (also written as ``<out>.summary.json``).
+
+    Attributes:
+        out_path / work_dir: paths; n_original / n_augmented: episodes in the dataset; n_failed: jobs that
+        failed after the retry budget; n_resampled: extra attempts over all emitted episodes;
+        n_jobs: augmented jobs; resumed_jobs: jobs already done when this run started;
+        status_counts: reasons of failed attempts by status; stages: per stage seconds / skipped;
+        timings_s: plan / render / write / pictures / total; frames_rendered: new frames rendered in this run;
+        episodes_per_s: jobs finished per second in this run; pictures: contact sheet + trajectory plots.
+    """
+
+    out_path: str
+    work_dir: str
+    n_original: int
+    n_augmented: int
+    n_failed: int
+    n_resampled: int
+    n_jobs: int
+    resumed_jobs: int
+    status_counts: dict = field(default_factory=dict)
+    stages: dict = field(default_factory=dict)
+    timings_s: dict = field(default_factory=dict)
+    frames_rendered: int = 0
+    episodes_per_s: float = 0.0
+    pictures: dict = field(default_factory=dict)
+    failures: list = field(default_factory=list)
+
+
+def export_jobs(assets: SessionAssets) -> list[tuple[int, str, int]]:
+    """The run's augmented jobs ``(demo_index, mode, aug_id)`` in export order."""
+    cfg = assets.cfg
+    return [(d, m, a) for d in assets.augmentable for m in cfg.modes for a in range(cfg.n_per_demo)]
+
+
+def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
+    # Everything that changes the episodes' content (not: workers, executor).
+    return config_hash("export", 1, fingerprint, cfg.seed, cfg.mode, cfg.n_per_demo, cfg.cone_half_angle_deg,
+                       cfg.cone_radius_m, cfg.max_extra_rotation_deg, cfg.image_size, cfg.max_attempts, cfg.splat,
+                       cfg.recon, cfg.obstacle, cfg.overlay, cfg.traj, cfg.render_near_m, cfg.render_far_m,
+                       cfg.include_original)
+
+
+def _working_path(out: Path) -> Path:
+    return out.with_name(out.name + ".partial") if out.name.endswith(".zip") else out
+
+
+def _add_records(buf, rows: dict[str, int]) -> None:
+    meta = buf.meta
+    for k, dt in RECORD_KEYS.items():
+        a = meta[k]
+        a.resize(a.shape[0] + 1)
+        a[-1] = np.asarray(rows[k], dtype=dt)
+
+
+def _create_store(path: Path, assets: SessionAssets, key: str, n_jobs: int) -> None:
+    """A new working store: the originals copied as stored + their records, in one atomic directory write."""
+    from umi_aug.data import ReplayBuffer
+
+    cfg = assets.cfg
+    if cfg.include_original:
+        buf = ReplayBuffer.open(assets.paths["dataset"], mode="a", load_to_memory=True)
+    else:  # empty arrays with the session dataset's layout (chunks, codecs), so chunks can be copied raw
+        buf = ReplayBuffer.create()
+        src = assets.original
+        for k in src.keys():
+            a = src[k]
+            buf.data.zeros(k, shape=(0,) + a.shape[1:], chunks=a.chunks, dtype=a.dtype, compressor=a.compressor,
+                           filters=a.filters)
+    E = buf.n_episodes
+    if cfg.include_original and "camera0_rgb" in buf and tuple(buf["camera0_rgb"].shape[1:3]) != (cfg.image_size,) * 2:
+        raise AugmentError(f"{assets.paths['dataset']}: key 'data/camera0_rgb' frames are "
+                           f"{tuple(buf['camera0_rgb'].shape[1:3])}, image_size = {cfg.image_size}")
+    contact = {d.index: d.contact_index for d in assets.demos}
+    init = {"aug_source_episode": np.arange(E), "aug_mode": np.zeros(E), "aug_id": np.full(E, -1),
+            "aug_seed": np.zeros(E), "aug_attempts": np.ones(E),
+            "aug_splice_index": np.array([-1 if contact.get(i) is None else contact[i] for i in range(E)]),
+            "aug_job": np.full(E, -1)}
+    for k, dt in RECORD_KEYS.items():
+        buf.meta.array(k, np.asarray(init[k], dtype=dt), chunks=(RECORD_CHUNK,), compressor=None)
+    buf.root.attrs[ATTR] = {"key": key, "n_jobs": n_jobs, "n_original": E, "last_job_done": -1, "failures": [],
+                            "modes": MODE_CODES, "format": "umi_aug export v1: meta/aug_* per episode"}
+    buf.save(path)
+
+
+def _open_store(path: Path, key: str):
+    from umi_aug.data import ReplayBuffer
+
+    buf = ReplayBuffer.open(path, mode="a", repair=True)
+    attrs = dict(buf.root.attrs.get(ATTR, {}))
+    if attrs.get("key") != key:
+        buf.close()
+        raise AugmentError(f"{path}: an export of another configuration/session (attribute '{ATTR}.key' = "
+                           f"{attrs.get('key')!r}, this run {key!r}); delete it, pass resume=False, or choose "
+                           f"another --out")
+    E = buf.n_episodes
+    for k in RECORD_KEYS:
+        a = buf.meta[k]
+        if a.shape[0] < E:
+            raise AugmentError(f"{path}: key 'meta/{k}' has {a.shape[0]} rows for {E} episodes (records are "
+                               f"written before the episode; the store was modified by something else)")
+        if a.shape[0] > E:
+            log.warning("%s: dropping %d record(s) of an interrupted append from meta/%s", path, a.shape[0] - E, k)
+            a.resize(E)
+    return buf, attrs
+
+
+def _stored_key(path: Path) -> str | None:
+    """The run key stored in an export (directory store read raw: it may hold an interrupted append)."""
+    from umi_aug.data.store import close_store, open_store
+
+    try:
+        store, root = open_store(path, mode="r")
+    except UmiAugError as exc:
+        raise AugmentError(f"{path}: exists but is not a readable zarr store ({exc}); delete it or choose another "
+                           f"--out") from exc
+    try:
+        return dict(root.attrs.get(ATTR, {})).get("key")
+    except (KeyError, ValueError, TypeError):
+        return None
+    finally:
+        close_store(store)
+
+
+@dataclass
+class _JobResult:
+    job: int
+    planned: PlannedEpisode | None
+    attempts: int
+    reasons: list
+    frames: np.ndarray | None
+    copy_tail: bool
+    plan_s: float
+    render_s: float
+
+
+def _job_task(args) -> _JobResult:
+    """One export job (top-level, picklable: runs in this process or on an executor's worker): plan (or load the
+    cached plan), then render the new frames — and the replayed ones too when they cannot be copied raw."""
+    assets, j, job, key, raw_ok = args
+    d, m, a = job
+    t0 = time.perf_counter()
+    cache = _plan_cache_path(assets, job, key)
+    planned = _load_planned(cache) if cache.exists() else None
+    if planned is None:
+        outcome = try_plan_episode(assets, d, a, m)
+        planned, attempts, reasons = outcome.planned, outcome.attempts, list(outcome.failures)
+        if planned is not None:
+            _save_planned(cache, planned)
+    else:
+        attempts, reasons = planned.attempts, list(planned.failures)
+    t1 = time.perf_counter()
+    frames, copy_tail = None, False
+    if planned is not None:
+        copy_tail = planned.obstacle is None and raw_ok
+        n = planned.splice_index if copy_tail else planned.n_frames
+        frames = render_episode_frames(assets, planned, range(n))
+    return _JobResult(j, planned, attempts, reasons, frames, copy_tail, t1 - t0, time.perf_counter() - t1)
+
+
+def _plan_cache_path(assets: SessionAssets, job: tuple[int, str, int], key: str) -> Path:
+    d, m, a = job
+    return assets.work_dir / "plans" / key / f"{m}_d{d:03d}_a{a:05d}.pkl"
+
+
+def _load_planned(path: Path) -> PlannedEpisode | None:
+    try:
+        with open(path, "rb") as fh:
+            return pickle.load(fh)
+    except (OSError, pickle.UnpicklingError, EOFError, AttributeError):
+        return None
+
+
+def _save_planned(path: Path, planned: PlannedEpisode) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            pickle.dump(planned, fh, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+IMAGE_KEY = "camera0_rgb"
+
+
+def _raw_copy_ok(dst_arr, src_arr) -> bool:
+    """Chunks of ``src_arr`` can be copied byte for byte into ``dst_arr`` (one frame per chunk, same codec)."""
+    return (dst_arr.chunks == src_arr.chunks and dst_arr.chunks[0] == 1 and dst_arr.dtype == src_arr.dtype
+            and dst_arr.shape[1:] == src_arr.shape[1:] and dst_arr.filters == src_arr.filters
+            and dst_arr.compressor is not None and src_arr.compressor is not None
+            and dst_arr.compressor.get_config() == src_arr.compressor.get_config())
+
+
+def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_arr, src_rows: np.ndarray
+                    ) -> None:
+    """Append one episode like :meth:`ReplayBuffer.add_episode` (data first, ``meta/episode_ends`` LAST): the
+    ``new_frames`` [n, S, S, 3] are encoded, the tail frames are the source array's rows ``src_rows`` copied as
+    stored (compressed chunks, no decode/re-encode; a chunk missing in the source is the fill value there and is
+    left missing here)."""
+    keys = sorted([*lowdim, IMAGE_KEY])
+    if keys != buf.keys():
+        raise AugmentError(f"{buf.name}: episode keys {keys} differ from the dataset's {buf.keys()}")
+    n, m = len(new_frames), len(src_rows)
+    L = n + m
+    for k, v in lowdim.items():
+        arr = buf[k]
+        v = np.asarray(v)
+        if len(v) != L or v.shape[1:] != arr.shape[1:] or v.dtype != arr.dtype:
+            raise AugmentError(f"{buf.name}: key 'data/{k}': expected ({L}, {arr.shape[1:]}) {arr.dtype}, got "
+                               f"{v.shape} {v.dtype}")
+        if v.dtype.kind == "f" and not np.isfinite(v).all():
+            raise AugmentError(f"{buf.name}: key 'data/{k}' of the new episode holds NaN/Inf")
+    old = buf.n_steps
+    for k, v in lowdim.items():
+        arr = buf[k]
+        arr.resize((old + L,) + arr.shape[1:])
+        arr[old:old + L] = v
+    img = buf[IMAGE_KEY]
+    img.resize((old + L,) + img.shape[1:])
+    if n:
+        img[old:old + n] = new_frames
+    dst_store, src_store = img.store, src_arr.store
+    for i, r in enumerate(np.asarray(src_rows, dtype=np.int64)):
+        skey = src_arr._chunk_key((int(r),) + (0,) * (src_arr.ndim - 1))
+        dkey = img._chunk_key((old + n + i,) + (0,) * (img.ndim - 1))
+        try:
+            dst_store[dkey] = src_store[skey]
+        except KeyError:
+            if dkey in dst_store:
+                del dst_store[dkey]
+    buf._commit_episode_end(old + L)
+
+
+def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: AugmentConfig, *,
+           resume: bool = True, work_dir: str | os.PathLike | None = None, progress: bool = True,
+           pictures: bool = True) -> ExportSummary:
+    """Write the original and the augmented episodes of a session to a UMI zarr (``.zarr.zip`` or directory).
+
+    Args:
+        session_dir: UMI session folder.
+        out_path: ``*.zip`` → a ``.zarr.zip`` written at the end (working directory ``<out>.partial``); anything
+            else → a zarr directory written in place.
+        cfg: :class:`AugmentConfig`.
+        resume: continue an interrupted export of the same configuration (False: start over).
+        work_dir: stage cache (default ``<out>.work``).
+        progress: tqdm bar (episodes/s).
+        pictures: contact sheet + trajectory plots next to the output.
+    Returns:
+        :class:`ExportSummary` (also ``<out>.summary.json``).
+    Raises:
+        AugmentError: stage failures, an existing export of another configuration, mismatched dataset keys.
+    """
+    from tqdm import tqdm
+
+    t_start = time.perf_counter()
+    out = Path(out_path)
+    work = Path(work_dir) if work_dir is not None else out.with_name(out.name + ".work")
+    if not Path(session_dir, "demos").is_dir():
+        raise AugmentError(f"{session_dir}: not a UMI session folder (no demos/)")
+    key = _run_key(cfg, session_fingerprint(Path(session_dir)))
+    wpath = _working_path(out)
+    if not resume:
+        for p in {wpath, out}:
+            if p.is_dir():
+                shutil.rmtree(p)
+            elif p.exists():
+                p.unlink()
+    finished = False
+    for p in ([out] if out.name.endswith(".zip") and not wpath.exists() else [wpath]):
+        if p.exists():  # checked before any stage runs: a mismatch costs nothing
+            if _stored_key(p) != key:
+                raise AugmentError(f"{p}: an export of another configuration/session (attribute "
+                                   f"'{ATTR}.key' differs from this run's {key!r}); delete it, pass "
+                                   f"resume=False, or choose another --out")
+            finished = p == out and out.name.endswith(".zip")
+    assets = prepare_session(session_dir, work, cfg, progress=progress)
+    jobs = export_jobs(assets)
+    if finished:
+        log.info("export: %s is complete for this configuration; nothing to do", out)
+        return _finish(out, work, assets, key, jobs, len(jobs), t_start, {}, 0, pictures, read_from=out)
+    if not wpath.exists():
+        _create_store(wpath, assets, key, len(jobs))
+    buf, attrs = _open_store(wpath, key)
+    timings = {"plan_s": 0.0, "render_s": 0.0, "write_s": 0.0}
+    frames_rendered = 0
+    try:
+        recs = buf.meta["aug_job"][:]
+        done_job = max(int(attrs.get("last_job_done", -1)), int(recs.max()) if recs.size else -1)
+        start = done_job + 1
+        resumed = start
+        if start > 0:
+            log.info("export: resuming %s after job %d of %d (%d episodes present)", wpath, done_job, len(jobs),
+                     buf.n_episodes)
+        failures = list(attrs.get("failures", []))
+        src_img = assets.original[IMAGE_KEY]
+        raw_ok = IMAGE_KEY in buf and _raw_copy_ok(buf[IMAGE_KEY], src_img)
+        if not raw_ok:
+            log.info("export: replayed frames are re-encoded (the output's image codec/chunks differ from the "
+                     "session dataset's)")
+        t_loop = time.perf_counter()
+        bar = tqdm(total=len(jobs), initial=start, desc="augment", unit="episode", disable=not progress,
+                   dynamic_ncols=True)
+        tasks = ((assets, j, jobs[j], key, raw_ok) for j in range(start, len(jobs)))
+        with bar:
+            for res in map_ordered(_job_task, tasks, executor=cfg.executor, workers=cfg.workers,
+                                   address=cfg.ray_address):
+                j, planned = res.job, res.planned
+                d, m, a = jobs[j]
+                timings["plan_s"] += res.plan_s
+                timings["render_s"] += res.render_s
+                if planned is None:
+                    failures.append({"job": j, "demo": d, "mode": m, "aug_id": a,
+                                     "seed": episode_seed(cfg.seed, d, a, m), "attempts": res.attempts,
+                                     "reasons": res.reasons[-3:]})
+                else:
+                    frames_rendered += planned.splice_index
+                    t0 = time.perf_counter()
+                    _add_records(buf, {"aug_source_episode": d, "aug_mode": MODE_CODES[m], "aug_id": a,
+                                       "aug_seed": planned.seed, "aug_attempts": planned.attempts,
+                                       "aug_splice_index": planned.splice_index, "aug_job": j})
+                    ep = planned.episode
+                    rows = np.zeros(0, np.int64)
+                    if res.copy_tail:  # replayed frames: the original compressed chunks
+                        r0 = assets.original.get_episode_slice(d).start + int(ep.source_contact_index)
+                        rows = np.arange(r0, r0 + planned.n_frames - planned.splice_index)
+                    _append_episode(buf, ep.umi_episode(), res.frames, src_img, rows)
+                    timings["write_s"] += time.perf_counter() - t0
+                tally = dict(attrs.get("attempt_failures", {}))
+                for r in res.reasons:
+                    tally[_status_of(r)] = tally.get(_status_of(r), 0) + 1
+                attrs.update({"last_job_done": j, "failures": failures, "attempt_failures": tally})
+                buf.root.attrs[ATTR] = attrs
+                bar.update(1)
+                rate = (j + 1 - start) / max(1e-9, time.perf_counter() - t_loop)
+                bar.set_postfix(eps=f"{rate:.2f}/s", failed=len(failures))
+    finally:
+        buf.close()
+    if out.name.endswith(".zip"):
+        from umi_aug.data import ReplayBuffer
+
+        t0 = time.perf_counter()
+        with ReplayBuffer.open(wpath) as final:
+            final.save(out)
+        shutil.rmtree(wpath)
+        timings["write_s"] += time.perf_counter() - t0
+    return _finish(out, work, assets, key, jobs, resumed, t_start, timings, frames_rendered, pictures, read_from=out,
+                   loop_s=time.perf_counter() - t_start)
+
+
+def _status_of(reason: str) -> str:
+    """``"attempt 3: collision: ..."`` → ``"collision"``."""
+    parts = reason.split(":")
+    return parts[1].strip() if len(parts) > 1 else reason
+
+
+def read_episode_records(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """The per-episode records (``meta/aug_*``, each ``[E]``) of an exported dataset."""
+    from umi_aug.data import ReplayBuffer
+
+    with ReplayBuffer.open(path) as buf:
+        missing = [k for k in RECORD_KEYS if k not in set(buf.meta.array_keys())]
+        if missing:
+            raise AugmentError(f"{path}: no per-episode records {missing} in meta/ (not an umi-aug export)")
+        return {k: np.asarray(buf.meta[k][:]) for k in RECORD_KEYS}
+
+
+def _finish(out: Path, work: Path, assets: SessionAssets, key: str, jobs, resumed: int, t_start: float,
+            timings: dict, frames_rendered: int, pictures: bool, read_from: Path, loop_s: float = 0.0
+            ) -> ExportSummary:
+    from umi_aug.data import ReplayBuffer
+
+    with ReplayBuffer.open(read_from) as buf:
+        attrs = dict(buf.root.attrs.get(ATTR, {}))
+        rec = {k: np.asarray(buf.meta[k][:]) for k in RECORD_KEYS}
+        n_orig = int((rec["aug_mode"] == 0).sum())
+        aug = rec["aug_mode"] > 0
+        failures = list(attrs.get("failures", []))
+        counts = dict(attrs.get("attempt_failures", {}))
+        pics = {}
+        t0 = time.perf_counter()
+        if pictures:
+            pics = _pictures(out, assets, buf, rec, key, jobs)
+        timings["pictures_s"] = time.perf_counter() - t0
+    done_now = len(jobs) - resumed
+    total = time.perf_counter() - t_start
+    timings["total_s"] = total
+    summary = ExportSummary(
+        out_path=str(out), work_dir=str(work), n_original=n_orig, n_augmented=int(aug.sum()),
+        n_failed=len(failures), n_resampled=int((rec["aug_attempts"][aug] - 1).sum()), n_jobs=len(jobs),
+        resumed_jobs=resumed, status_counts=dict(counts),
+        stages={k: {"seconds": round(v.seconds, 3), "skipped": v.skipped} for k, v in assets.stages.items()},
+        timings_s={k: round(v, 3) for k, v in timings.items()}, frames_rendered=frames_rendered,
+        episodes_per_s=round(done_now / loop_s, 4) if loop_s > 0 else 0.0, pictures=pics, failures=failures)
+    atomic_write_text(out.with_name(out.name + ".summary.json"), json.dumps(asdict(summary), indent=2) + "\n")
+    return summary
+
+
+def _pictures(out: Path, assets: SessionAssets, buf, rec: dict, key: str, jobs) -> dict:
+    from umi_aug.demo.pictures import contact_sheet
+    from umi_aug.traj import plot_trajectories
+
+    pics = {}
+    E = buf.n_episodes
+    orig = [i for i in range(E) if rec["aug_mode"][i] == 0][:2]
+    augm = [i for i in range(E) if rec["aug_mode"][i] > 0][:6]
+    rows = orig + augm
+    if rows:
+        frames = [buf.get_episode(i, ["camera0_rgb"])["camera0_rgb"] for i in rows]
+        splice = [int(rec["aug_splice_index"][i]) if rec["aug_splice_index"][i] >= 0 else len(f) - 1
+                  for i, f in zip(rows, frames)]
+        inv = {v: k for k, v in MODE_CODES.items()}
+        names = [f"{inv[int(rec['aug_mode'][i])]} d{int(rec['aug_source_episode'][i])}"
+                 + (f" a{int(rec['aug_id'][i])}" if rec["aug_id"][i] >= 0 else "") for i in rows]
+        pics["contact_sheet"] = str(contact_sheet(frames, out.with_name(out.name + ".contact_sheet.png"),
+                                                  splice_indices=splice, row_names=names))
+    for d in assets.augmentable:
+        eps = []
+        for job in jobs:
+            if job[0] == d:
+                p = _plan_cache_path(assets, job, key)
+                pl = _load_planned(p) if p.exists() else None
+                if pl is not None:
+                    eps.append(pl.episode)
+        if eps:
+            name = assets.demos[d].name
+            path = out.with_name(f"{out.name}.trajectories_{name}.png")
+            pics[f"trajectories/{name}"] = str(plot_trajectories(
+                path, assets.traj_problem(d), eps,
+                title=f"{name}: {len(eps)} augmented trajectories ({assets.cfg.mode}; obstacles not drawn)"))
+    return pics
+
+
+def summary_table(summary: ExportSummary):
+    """A ``rich.table.Table`` of the summary (episodes, failures, resampling, per-stage timings)."""
+    from rich.table import Table
+
+    t = Table(title=f"umi-aug augment → {summary.out_path}")
+    t.add_column("item")
+    t.add_column("value", justify="right")
+    for k, v in [("original episodes", summary.n_original), ("augmented episodes", summary.n_augmented),
+                 ("failed jobs", summary.n_failed), ("resampled attempts", summary.n_resampled),
+                 ("jobs resumed", summary.resumed_jobs), ("new frames rendered", summary.frames_rendered),
+                 ("episodes/s (this run)", summary.episodes_per_s)]:
+        t.add_row(k, str(v))
+    for k, v in summary.stages.items():
+        t.add_row(f"stage {k}", "cached" if v["skipped"] else f"{v['seconds']:.1f} s")
+    for k, v in summary.timings_s.items():
+        t.add_row(k, f"{v:.2f}")
+    for k, v in summary.status_counts.items():
+        t.add_row(f"failed attempts: {k}", str(v))
+    return t

@@ -1,0 +1,163 @@
+"""Photometric losses and metrics of the splat trainer (INRIA 3DGS: ``(1 - lambda) L1 + lambda (1 - SSIM)``).
+
+Masking: a pixel with ``mask = False`` (gripper, mirrors, outside the fisheye image circle) must not influence
+the loss. The prediction is composited with the target there (``where(mask, pred, target)``) *before* the SSIM
+windows are taken, so masked pixels get exactly zero gradient and windows straddling the mask edge compare only
+true pixels against the target; L1 and the SSIM map are then averaged over the masked-in pixels only.
+
+SSIM: 11x11 Gaussian window (sigma 1.5), ``C1 = 0.01^2``, ``C2 = 0.03^2`` (data range 1), zero padding at the
+image border (INRIA ``utils/loss_utils.py``), separable convolution. :func:`ssim_map_reference` is the direct
+float64 formula (explicit windows) the fast version is tested against.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from umi_aug.errors import SplatError
+
+__all__ = [
+    "SSIM_WINDOW", "SSIM_SIGMA", "gaussian_window_1d", "ssim_map", "ssim_map_reference", "masked_ssim",
+    "masked_l1", "masked_psnr", "photometric_loss",
+]
+
+Tensor = torch.Tensor
+
+#: SSIM window edge (pixels) and Gaussian standard deviation (pixels).
+SSIM_WINDOW: int = 11
+SSIM_SIGMA: float = 1.5
+#: SSIM stabilisers for data range 1.
+SSIM_C1: float = 0.01**2
+SSIM_C2: float = 0.03**2
+
+
+def gaussian_window_1d(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA, dtype=torch.float32) -> Tensor:
+    """Normalised 1D Gaussian ``[size]`` (the 2D window is its outer product)."""
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
+    w = torch.exp(-(x * x) / (2.0 * sigma * sigma))
+    return (w / w.sum()).to(dtype)
+
+
+def _check_pair(pred: Tensor, target: Tensor, mask: Tensor | None) -> None:
+    if pred.ndim != 3 or pred.shape[-1] != 3 or pred.shape != target.shape:
+        raise SplatError(f"loss: pred and target must both be [H, W, 3], got {list(pred.shape)} and "
+                         f"{list(target.shape)}")
+    if mask is not None and tuple(mask.shape) != tuple(pred.shape[:2]):
+        raise SplatError(f"loss: mask must be [H, W] = {list(pred.shape[:2])}, got {list(mask.shape)}")
+
+
+def _blur(x: Tensor, w: Tensor) -> Tensor:
+    """Separable zero-padded Gaussian blur of ``x [1, C, H, W]`` (depthwise convolutions: one group per map, much
+    faster on the CPU than a batch of single-channel maps)."""
+    k, c = w.shape[0], x.shape[1]
+    x = F.conv2d(x, w.view(1, 1, 1, k).expand(c, 1, 1, k), padding=(0, k // 2), groups=c)
+    return F.conv2d(x, w.view(1, 1, k, 1).expand(c, 1, k, 1), padding=(k // 2, 0), groups=c)
+
+
+def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
+    """Per-pixel SSIM ``[H, W, 3]`` of two ``[H, W, 3]`` images in [0, 1] (differentiable, separable conv)."""
+    _check_pair(pred, target, None)
+    w = gaussian_window_1d(dtype=pred.dtype)
+    x = pred.permute(2, 0, 1)[None]  # [1, 3, H, W]
+    y = target.permute(2, 0, 1)[None]
+    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), w)  # [1, 15, H, W]
+    mu_x, mu_y, e_xx, e_yy, e_xy = stats.split(3, dim=1)
+    sxx = e_xx - mu_x * mu_x
+    syy = e_yy - mu_y * mu_y
+    sxy = e_xy - mu_x * mu_y
+    num = (2.0 * mu_x * mu_y + SSIM_C1) * (2.0 * sxy + SSIM_C2)
+    den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sxx + syy + SSIM_C2)
+    return (num / den)[0].permute(1, 2, 0)
+
+
+def ssim_map_reference(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Direct float64 SSIM ``[H, W, 3]``: for every pixel and channel, explicit weighted means, variances and
+    covariance over the 11x11 window (pixels outside the image count as 0, like zero padding). Slow; tests only."""
+    x = np.asarray(pred, dtype=np.float64)
+    y = np.asarray(target, dtype=np.float64)
+    H, W, C = x.shape
+    g = gaussian_window_1d(dtype=torch.float64).numpy()
+    win = np.outer(g, g)
+    r = SSIM_WINDOW // 2
+    xp = np.pad(x, ((r, r), (r, r), (0, 0)))
+    yp = np.pad(y, ((r, r), (r, r), (0, 0)))
+    out = np.empty_like(x)
+    for i in range(H):
+        for j in range(W):
+            for c in range(C):
+                a = xp[i : i + 2 * r + 1, j : j + 2 * r + 1, c]
+                b = yp[i : i + 2 * r + 1, j : j + 2 * r + 1, c]
+                mx, my = (win * a).sum(), (win * b).sum()
+                vx = (win * a * a).sum() - mx * mx
+                vy = (win * b * b).sum() - my * my
+                cxy = (win * a * b).sum() - mx * my
+                out[i, j, c] = ((2 * mx * my + SSIM_C1) * (2 * cxy + SSIM_C2)) / (
+                    (mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2))
+    return out
+
+
+def _composite(pred: Tensor, target: Tensor, mask: Tensor | None) -> Tensor:
+    return pred if mask is None else torch.where(mask[..., None], pred, target)
+
+
+def _masked_mean(x: Tensor, mask: Tensor | None) -> Tensor:
+    """Mean of ``x [H, W, 3]`` over the pixels with ``mask`` (all pixels when None)."""
+    if mask is None:
+        return x.mean()
+    n = mask.sum()
+    if int(n) == 0:
+        raise SplatError("loss: the mask selects no pixel")
+    return (x * mask[..., None].to(x.dtype)).sum() / (3.0 * n.to(x.dtype))
+
+
+def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Mean SSIM over the masked-in pixels (``mask [H, W]`` bool; prediction composited with the target outside)."""
+    _check_pair(pred, target, mask)
+    return _masked_mean(ssim_map(_composite(pred, target, mask), target), mask)
+
+
+def masked_l1(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Mean absolute error over the masked-in pixels and the 3 channels."""
+    _check_pair(pred, target, mask)
+    return _masked_mean((_composite(pred, target, mask) - target).abs(), mask)
+
+
+def masked_psnr(pred: Tensor | np.ndarray, target: Tensor | np.ndarray,
+                mask: Tensor | np.ndarray | None = None) -> float:
+    """PSNR in dB (data range 1) over the masked-in pixels; ``pred`` is clamped to [0, 1] first."""
+    p = torch.as_tensor(pred).double().clamp(0.0, 1.0)
+    t = torch.as_tensor(target).double()
+    m = None if mask is None else torch.as_tensor(mask, dtype=torch.bool)
+    _check_pair(p, t, m)
+    mse = float(_masked_mean((p - t) ** 2, m))
+    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
+
+
+def photometric_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None,
+                     ssim_weight: float = 0.2) -> tuple[Tensor, dict[str, float]]:
+    """``(1 - w) L1 + w (1 - SSIM)`` on the masked-in pixels (INRIA 3DGS with ``w = 0.2``).
+
+    Args:
+        pred: Tensor,  # [H, W, 3] rendered RGB
+        target: Tensor,  # [H, W, 3] ground truth in [0, 1]
+        mask: Tensor | None,  # [H, W] bool, True = pixel used
+        ssim_weight: ``w`` in [0, 1].
+    Returns:
+        The scalar loss and ``{"l1": ..., "ssim": ...}`` (floats, for logging).
+    """
+    if not 0.0 <= ssim_weight <= 1.0:
+        raise SplatError(f"ssim_weight must be in [0, 1], got {ssim_weight!r}")
+    _check_pair(pred, target, mask)
+    comp = _composite(pred, target, mask)
+    l1 = _masked_mean((comp - target).abs(), mask)
+    if ssim_weight > 0:
+        ssim = _masked_mean(ssim_map(comp, target), mask)
+        loss = (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim)
+    else:
+        ssim = torch.zeros((), dtype=pred.dtype)
+        loss = l1
+    return loss, {"l1": float(l1.detach()), "ssim": float(ssim.detach())}
