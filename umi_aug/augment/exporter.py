@@ -35,7 +35,7 @@ from umi_aug.augment.config import AugmentConfig, config_hash
 from umi_aug.augment.executor import map_ordered
 from umi_aug.augment.plan import MODE_CODES, PlannedEpisode, episode_seed, try_plan_episode
 from umi_aug.augment.render import render_episode_frames
-from umi_aug.augment.session_assets import SessionAssets, prepare_session, session_fingerprint
+from umi_aug.augment.session_assets import OVERLAY_MASK_RULE, SessionAssets, prepare_session, session_fingerprint
 from umi_aug.errors import AugmentError, UmiAugError
 from umi_aug.io_utils import atomic_path, atomic_write_text
 
@@ -88,8 +88,9 @@ def export_jobs(assets: SessionAssets) -> list[tuple[int, str, int]]:
 
 
 def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
-    # Everything that changes the episodes' content (not: workers, executor).
-    return config_hash("export", 1, fingerprint, cfg.seed, cfg.mode, cfg.n_per_demo, cfg.cone_half_angle_deg,
+    # Everything that changes the episodes' content (not: workers, executor); the overlay-mask rule is code, not
+    # config, so its version is part of the key too.
+    return config_hash("export", 1, OVERLAY_MASK_RULE, fingerprint, cfg.seed, cfg.mode, cfg.n_per_demo, cfg.cone_half_angle_deg,
                        cfg.cone_radius_m, cfg.max_extra_rotation_deg, cfg.image_size, cfg.max_attempts, cfg.splat,
                        cfg.recon, cfg.obstacle, cfg.overlay, cfg.traj, cfg.render_near_m, cfg.render_far_m,
                        cfg.include_original)

@@ -30,6 +30,10 @@ __all__ = ["predefined_overlay_mask", "estimate_gripper_mask", "choose_overlay_m
 
 log = logging.getLogger(__name__)
 
+#: Largest grey-level temporal std (0..255) a finger pixel may have (JPEG-XL noise and shading stay below it;
+#: scene moving behind the fingers is far above: ~40-75 on the synthetic session).
+MAX_FINGER_STD = 30.0
+
 
 def predefined_overlay_mask(size: int) -> np.ndarray:
     """UMI's gripper polygons ∪ finger trapezoid at ``size x size`` → ``[S, S]`` bool."""
@@ -69,9 +73,10 @@ def choose_overlay_mask(frames: np.ndarray, size: int, how: str = "auto", std_th
         size: S.
         how: ``"predefined"`` (UMI's gripper polygons ∪ finger trapezoid), ``"estimated"`` (static pixels), or
             ``"auto"``: when at least ``min_coverage`` of the static estimate lies inside UMI's polygons (they fit
-            this gripper), UMI's gripper polygons ∪ the static estimate — the finger trapezoid alone would also
-            copy the background seen between the fingers (e.g. a table tag) onto every rendered frame; else the
-            estimate; the full predefined mask when the estimate is empty.
+            this gripper), UMI's jaw polygons ∪ the static finger pixels of the finger trapezoid
+            (:func:`static_fingers`) — the whole trapezoid would also copy the scene seen between the fingers
+            (e.g. a table tag) onto every rendered frame; else the estimate; the full predefined mask when the
+            estimate is empty.
     Returns:
         (mask ``[S, S]`` bool, info dict: ``source``, ``coverage``, ``pixels``).
     """
@@ -91,9 +96,33 @@ def choose_overlay_mask(frames: np.ndarray, size: int, how: str = "auto", std_th
         src = "estimated" if how == "estimated" else "estimated (predefined does not fit)"
         return est, {"source": src, "coverage": coverage, "pixels": int(est.sum())}
     jaws = predefined_mask(size, size, mirror=False, gripper=True, finger=False)
-    mask = jaws | (est & pre)
+    fingers = static_fingers(frames, pre & ~jaws)
+    mask = jaws | fingers
     return mask, {"source": "predefined jaws + static fingers (fits the estimate)", "coverage": coverage,
-                  "pixels": int(mask.sum())}
+                  "pixels": int(mask.sum()), "finger_pixels": int(fingers.sum())}
+
+
+def static_fingers(frames: np.ndarray,  # [N, S, S, 3] uint8 frames with an open, static gripper
+                   region: np.ndarray,  # [S, S] bool the finger trapezoid outside the jaw polygons
+                   max_static_std: float = MAX_FINGER_STD) -> np.ndarray:
+    """The finger pixels inside UMI's finger trapezoid → ``[S, S]`` bool.
+
+    The trapezoid holds the (static) fingers and the (moving) scene seen between them. Their grey-level temporal
+    standard deviations form two groups; Otsu's threshold on the region's values separates them, capped at
+    ``max_static_std`` (a region that is all moving scene gives no finger pixel). Rendering noise and shading on
+    the fingers make a fixed small threshold miss them.
+    """
+    f = np.asarray(frames)
+    grey = f.astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    sd = grey.std(axis=0)
+    vals = np.clip(sd[region], 0, 255).astype(np.uint8)
+    if vals.size == 0:
+        return np.zeros(region.shape, bool)
+    thr, _ = cv2.threshold(vals.reshape(-1, 1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    fingers = (region & (sd <= min(float(thr), max_static_std))).astype(np.uint8)
+    k = np.ones((3, 3), np.uint8)
+    fingers = cv2.morphologyEx(fingers, cv2.MORPH_CLOSE, k)  # fill pinholes; no opening: thin finger edges stay
+    return (fingers > 0) & region
 
 
 def overlay_alpha(mask: np.ndarray, feather_px: float = 2.0) -> np.ndarray:

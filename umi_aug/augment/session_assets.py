@@ -40,8 +40,8 @@ __all__ = ["DemoInfo", "SessionAssets", "prepare_session", "session_fingerprint"
 
 log = logging.getLogger(__name__)
 
-#: Version of the overlay-mask rule (2: "auto" = UMI's jaw polygons + static finger pixels, no finger trapezoid).
-OVERLAY_MASK_RULE = 2
+#: Version of the overlay-mask rule (3: "auto" = UMI's jaw polygons + the static finger pixels of the trapezoid).
+OVERLAY_MASK_RULE = 3
 
 #: Heavy members of unpickled :class:`SessionAssets`, per process, keyed by :attr:`SessionAssets.cache_id`.
 _PROCESS_CACHE: dict[str, dict[str, Any]] = {}

@@ -190,6 +190,7 @@ def run_demo(cfg: DemoConfig, say: Callable[[str], None] = log.info) -> dict:
     from umi_aug.augment import AugmentConfig, SplatStageConfig, export, prepare_session
     from umi_aug.data import validate_replay_buffer
     from umi_aug.demo import pictures
+    from umi_aug.errors import AugmentError
 
     t_all = time.perf_counter()
     out = Path(cfg.out_dir)
@@ -209,7 +210,13 @@ def run_demo(cfg: DemoConfig, say: Callable[[str], None] = log.info) -> dict:
     say(f"augment: reconstruct → 3DGS ({cfg.splat_iterations} steps, ≤{cfg.splat_max_gaussians} Gaussians) → "
         f"{cfg.n_episodes} episode(s) per mode ({cfg.mode}) → {dataset}")
     t0 = time.perf_counter()
-    exp = export(session_dir, dataset, acfg, work_dir=work)
+    try:
+        exp = export(session_dir, dataset, acfg, work_dir=work)
+    except AugmentError as exc:
+        if "another configuration" not in str(exc):
+            raise
+        say(f"augment: {dataset} was made with other settings or an older version: writing it anew")
+        exp = export(session_dir, dataset, acfg, work_dir=work, resume=False)
     timings["augment_s"] = time.perf_counter() - t0
     report = validate_replay_buffer(dataset)
 
