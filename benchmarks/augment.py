@@ -69,7 +69,7 @@ def main() -> None:
     from umi_aug.augment import AugmentConfig, SplatStageConfig, export, prepare_session
     from umi_aug.demo.pipeline import compare_with_ground_truth
 
-    console = Console()
+    console = Console(width=200)
     work = Path(args.work)
     session = Path(args.session) if args.session else _session(work / "session", args.scan_frames)
     rows = []
