@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["add_augment_parser", "cmd_augment", "config_from_args"]
+__all__ = ["add_augment_parser", "cmd_augment", "config_from_args", "dataset_input_from_args"]
 
 
 def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentParser:
     """Add the ``augment`` sub-command (imports nothing heavy)."""
-    p = sub.add_parser("augment", help="augmented UMI dataset (original + new episodes) from a session")
-    p.add_argument("session", help="UMI session folder (demos/mapping, demos/demo_*, calibration/, dataset.zarr.zip)")
+    p = sub.add_parser("augment", help="augmented UMI dataset (original + new episodes) from a session or dataset")
+    p.add_argument("session", help="UMI session folder (demos/mapping, demos/demo_*, calibration/, dataset.zarr.zip) "
+                   "or a plain UMI dataset (*.zarr.zip / zarr directory: scenes built from its own frames)")
     p.add_argument("--mode", choices=("freespace", "obstacle", "both"), default="freespace")
     p.add_argument("-n", "--n-per-demo", type=int, default=4, help="augmented episodes per demo and mode")
     p.add_argument("--out", required=True, help="output dataset (*.zarr.zip, or a zarr directory)")
@@ -34,6 +35,15 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
     p.add_argument("--no-original", action="store_true", help="do not copy the original episodes")
     p.add_argument("--restart", action="store_true", help="discard an interrupted export instead of resuming")
     p.add_argument("--no-pictures", action="store_true")
+    g = p.add_argument_group("plain dataset input (a *.zarr.zip instead of a session folder)")
+    g.add_argument("--episodes", default=None, metavar="A:B",
+                   help="episodes to augment, e.g. 0:50 or 0,3,7:9 (default all; the others are copied unchanged)")
+    g.add_argument("--scene-group", type=int, default=1, metavar="N",
+                   help="N consecutive episodes share one scene (default 1: a scene per episode)")
+    g.add_argument("--scene-map", default=None, metavar="JSON",
+                   help='JSON file {"scene": [episode, ...]} or [[episode, ...], ...] of episodes sharing a scene')
+    g.add_argument("--tcp-offset", type=float, default=0.205,
+                   help="UMI's tcp_offset (m, gripper tip to mount) of the camera→TCP transform")
     p.set_defaults(func=cmd_augment)
     return p
 
@@ -55,6 +65,19 @@ def config_from_args(args: argparse.Namespace):
         executor=args.executor, workers=args.workers, ray_address=args.ray_address)
 
 
+def dataset_input_from_args(args: argparse.Namespace):
+    """The :class:`~umi_aug.augment.dataset_source.DatasetInput` of parsed arguments (used for a plain dataset)."""
+    from umi_aug.augment.dataset_source import DatasetInput, load_scene_map, parse_episodes
+    from umi_aug.errors import AugmentError
+
+    if getattr(args, "scene_group", 1) < 1:
+        raise AugmentError(f"--scene-group {args.scene_group}: must be >= 1")
+    return DatasetInput(tcp_offset_m=float(getattr(args, "tcp_offset", 0.205)),
+                        episodes=parse_episodes(getattr(args, "episodes", None)),
+                        scene_group=int(getattr(args, "scene_group", 1)),
+                        scene_map=load_scene_map(args.scene_map) if getattr(args, "scene_map", None) else None)
+
+
 def cmd_augment(args: argparse.Namespace) -> int:
     from rich.console import Console
 
@@ -62,7 +85,7 @@ def cmd_augment(args: argparse.Namespace) -> int:
 
     cfg = config_from_args(args)
     s = export(args.session, args.out, cfg, resume=not args.restart, work_dir=args.work,
-               pictures=not args.no_pictures)
+               pictures=not args.no_pictures, dataset_input=dataset_input_from_args(args))
     console = Console()
     console.print(summary_table(s))
     for k, v in s.pictures.items():

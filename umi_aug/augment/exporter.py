@@ -194,6 +194,7 @@ def _job_task(args) -> _JobResult:
     cached plan), then render the new frames — and the replayed ones too when they cannot be copied raw."""
     assets, j, job, key, raw_ok = args
     d, m, a = job
+    assets = assets.for_demo(d)  # a plain dataset: the demo's scene group
     t0 = time.perf_counter()
     cache = _plan_cache_path(assets, job, key)
     planned = _load_planned(cache) if cache.exists() else None
@@ -285,11 +286,13 @@ def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, 
 
 def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: AugmentConfig, *,
            resume: bool = True, work_dir: str | os.PathLike | None = None, progress: bool = True,
-           pictures: bool = True) -> ExportSummary:
+           pictures: bool = True, dataset_input=None) -> ExportSummary:
     """Write the original and the augmented episodes of a session to a UMI zarr (``.zarr.zip`` or directory).
 
     Args:
-        session_dir: UMI session folder.
+        session_dir: UMI session folder, or a plain UMI dataset (``*.zarr.zip`` / zarr directory; scenes built
+            from its own frames, :mod:`umi_aug.augment.dataset_source`).
+        dataset_input: :class:`~umi_aug.augment.dataset_source.DatasetInput` of a plain dataset (default one).
         out_path: ``*.zip`` → a ``.zarr.zip`` written at the end (working directory ``<out>.partial``); anything
             else → a zarr directory written in place.
         cfg: :class:`AugmentConfig`.
@@ -307,9 +310,18 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
     t_start = time.perf_counter()
     out = Path(out_path)
     work = Path(work_dir) if work_dir is not None else out.with_name(out.name + ".work")
-    if not Path(session_dir, "demos").is_dir():
-        raise AugmentError(f"{session_dir}: not a UMI session folder (no demos/)")
-    key = _run_key(cfg, session_fingerprint(Path(session_dir)))
+    from umi_aug.augment import dataset_source as dsrc
+
+    is_dataset = dsrc.is_dataset_path(session_dir)
+    if is_dataset:  # checked before anything is removed or computed: one error naming the key/episode
+        dataset_input = dataset_input or dsrc.DatasetInput()
+        dsrc.check_dataset(session_dir, cfg.image_size, dataset_input)
+        key = _run_key(cfg, config_hash(dsrc.dataset_fingerprint(session_dir), dataset_input))
+    elif not Path(session_dir, "demos").is_dir():
+        raise AugmentError(f"{session_dir}: neither a UMI session folder (no demos/) nor a UMI dataset "
+                           f"(*.zarr.zip or a zarr directory with data/ and meta/)")
+    else:
+        key = _run_key(cfg, session_fingerprint(Path(session_dir)))
     wpath = _working_path(out)
     if not resume:
         for p in {wpath, out}:
@@ -325,7 +337,10 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
                                    f"'{ATTR}.key' differs from this run's {key!r}); delete it, pass "
                                    f"resume=False, or choose another --out")
             finished = p == out and out.name.endswith(".zip")
-    assets = prepare_session(session_dir, work, cfg, progress=progress)
+    if is_dataset:
+        assets = dsrc.prepare_dataset(session_dir, work, cfg, dataset_input, progress=progress)
+    else:
+        assets = prepare_session(session_dir, work, cfg, progress=progress)
     jobs = export_jobs(assets)
     if finished:
         log.info("export: %s is complete for this configuration; nothing to do", out)
@@ -375,7 +390,7 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
                     if res.copy_tail:  # replayed frames: the original compressed chunks
                         r0 = assets.original.get_episode_slice(d).start + int(ep.source_contact_index)
                         rows = np.arange(r0, r0 + planned.n_frames - planned.splice_index)
-                    _append_episode(buf, ep.umi_episode(), res.frames, src_img, rows)
+                    _append_episode(buf, assets.umi_episode(ep), res.frames, src_img, rows)
                     timings["write_s"] += time.perf_counter() - t0
                 tally = dict(attrs.get("attempt_failures", {}))
                 for r in res.reasons:
@@ -477,7 +492,7 @@ def _pictures(out: Path, assets: SessionAssets, buf, rec: dict, key: str, jobs) 
             name = assets.demos[d].name
             path = out.with_name(f"{out.name}.trajectories_{name}.png")
             pics[f"trajectories/{name}"] = str(plot_trajectories(
-                path, assets.traj_problem(d), eps,
+                path, assets.for_demo(d).traj_problem(d), eps,
                 title=f"{name}: {len(eps)} augmented trajectories ({assets.cfg.mode}; obstacles not drawn)"))
     return pics
 

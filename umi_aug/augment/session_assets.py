@@ -191,6 +191,16 @@ class SessionAssets:
                                f"{self.work_dir}/reconstruct/recon_report.json); set recon.contact_overrides")
         return d
 
+    def for_demo(self, demo_index: int) -> "SessionAssets":
+        """The handle whose scene (SDF, Gaussians, render views, overlay mask) serves demo ``demo_index``: a
+        session has one scene, so itself (a plain dataset's :class:`~umi_aug.augment.dataset_source.DatasetAssets`
+        returns the demo's scene group)."""
+        return self
+
+    def umi_episode(self, episode) -> dict[str, np.ndarray]:
+        """UMI replay-buffer keys of an :class:`umi_aug.traj.AugmentedEpisode` (no images)."""
+        return episode.umi_episode()
+
     @property
     def augmentable(self) -> list[int]:
         """Indices of the demos that have a contact frame."""

@@ -1,0 +1,195 @@
+"""A plain UMI replay buffer as augmentation input (issue #13): bad input gets one clear error before any compute
+and nothing is written; scene groups / episode selection; the real demonstration end to end (slow)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from umi_aug.errors import AugmentError
+
+S = 32
+REAL = Path(__file__).resolve().parents[2] / ".." / "shared" / "realdata" / "umi_cup_in_the_wild_ep0" / \
+    "dataset.zarr.zip"
+
+
+def _episode(n: int, rng: np.random.Generator, x0: float = 0.0) -> dict:
+    from umi_aug.data import make_umi_episode
+    from umi_aug.geometry import pos_rotvec_to_pose
+
+    t = np.linspace(0, 1, n)
+    p6 = np.zeros((n, 6))
+    p6[:, 0] = x0 + 0.2 * t
+    p6[:, 2] = 0.3 - 0.2 * t
+    p6[:, 3] = np.pi
+    w = np.where(t < 0.6, 0.08, 0.04)
+    img = rng.integers(0, 255, (n, S, S, 3), dtype=np.uint8)
+    return make_umi_episode(pos_rotvec_to_pose(p6), w, images={0: img})
+
+
+def _write(path: Path, eps: list[dict], poke: tuple[str, int, int, float] | None = None) -> Path:
+    """Save episodes; ``poke = (key, row, column, value)`` then writes a value the writer refuses (NaN/Inf)
+    straight into the stored array (a zarr directory)."""
+    from umi_aug.data import ReplayBuffer
+
+    buf = ReplayBuffer.create()
+    for e in eps:
+        buf.add_episode(e)
+    buf.save(path)
+    if poke is not None:
+        with ReplayBuffer.open(path, mode="a") as b:
+            k, r, c, v = poke
+            row = b[k][r]
+            row[c] = v
+            b[k][r] = row
+    return path
+
+
+@pytest.fixture()
+def good(tmp_path):
+    rng = np.random.default_rng(0)
+    return [_episode(40, rng), _episode(50, rng, 0.1), _episode(30, rng, -0.1)]
+
+
+def _check(path, **kw):
+    from umi_aug.augment.dataset_source import DatasetInput, check_dataset
+
+    return check_dataset(path, S, DatasetInput(**kw))
+
+
+def test_good_dataset_passes(tmp_path, good):
+    from umi_aug.augment.dataset_source import is_dataset_path
+
+    p = _write(tmp_path / "ok.zarr.zip", good)
+    assert is_dataset_path(p) and not is_dataset_path(tmp_path)
+    chk = _check(p)
+    assert chk.n_episodes == 3 and sorted(chk.T_world_tcp) == [0, 1, 2]
+    assert chk.T_world_tcp[1].shape == (50, 4, 4) and np.isfinite(chk.T_world_tcp[1]).all()
+    assert sorted(_check(p, episodes=(2,)).T_world_tcp) == [2]
+
+
+@pytest.mark.parametrize("case, needle", [
+    ("nan", "episode 1"), ("missing", "robot0_gripper_width"), ("size", "camera0_rgb"), ("jump", "lost-tracking"),
+    ("frozen", "frozen"), ("short", "episode 2"),
+])
+def test_bad_dataset_one_clear_error(tmp_path, good, case, needle):
+    eps = [dict(e) for e in good]
+    poke = None
+    if case == "nan":
+        poke = ("robot0_eef_pos", 40 + 7, 1, np.nan)
+    elif case == "missing":
+        for e in eps:
+            del e["robot0_gripper_width"]
+    elif case == "size":
+        for e in eps:
+            e["camera0_rgb"] = np.zeros((len(e["camera0_rgb"]), S, S + 8, 3), np.uint8)
+    elif case == "jump":
+        eps[1]["robot0_eef_pos"] = eps[1]["robot0_eef_pos"].copy()
+        eps[1]["robot0_eef_pos"][25:] += np.float32(0.3)
+    elif case == "frozen":
+        eps[1]["robot0_eef_pos"] = eps[1]["robot0_eef_pos"].copy()
+        eps[1]["robot0_eef_rot_axis_angle"] = eps[1]["robot0_eef_rot_axis_angle"].copy()
+        eps[1]["robot0_eef_pos"][35:] = eps[1]["robot0_eef_pos"][35]
+        eps[1]["robot0_eef_rot_axis_angle"][35:] = eps[1]["robot0_eef_rot_axis_angle"][35]
+    elif case == "short":
+        eps[2] = {k: v[:8] for k, v in eps[2].items()}
+    p = _write(tmp_path / "bad.zarr", eps, poke)
+    with pytest.raises(AugmentError) as ei:
+        _check(p)
+    assert needle in str(ei.value) and str(p) in str(ei.value)
+    if case in ("nan", "jump", "frozen"):
+        assert "episode 1" in str(ei.value)
+    if case in ("jump", "frozen", "short"):  # not augmented, only copied: fine
+        _check(p, episodes=(0,))
+    elif case == "nan":  # copied into the output all the same: refused
+        with pytest.raises(AugmentError, match="episode 1"):
+            _check(p, episodes=(0,))
+
+
+def test_bad_dataset_export_writes_nothing(tmp_path, good):
+    """The export refuses a bad dataset before any stage runs: no output, no work folder, an old output kept."""
+    from umi_aug.augment import AugmentConfig
+    from umi_aug.augment.exporter import export
+
+    p = _write(tmp_path / "bad.zarr", good, ("robot0_eef_rot_axis_angle", 3, 0, np.inf))
+    out = tmp_path / "out.zarr.zip"
+    out.write_bytes(b"previous export")
+    with pytest.raises(AugmentError, match="episode 0"):
+        export(p, out, AugmentConfig(image_size=S), resume=False)
+    assert out.read_bytes() == b"previous export"
+    assert not (tmp_path / "out.zarr.zip.work").exists() and not (tmp_path / "out.zarr.zip.partial").exists()
+
+
+def test_episode_selection_and_groups(tmp_path):
+    from umi_aug.augment.dataset_source import DatasetInput, load_scene_map, parse_episodes, scene_groups
+
+    assert parse_episodes("0:3") == (0, 1, 2) and parse_episodes("5,1:3") == (1, 2, 5) and parse_episodes("") is None
+    for bad in ("3:1", "a", "1:"):
+        with pytest.raises(AugmentError, match="--episodes"):
+            parse_episodes(bad)
+    assert scene_groups(10, [0, 1, 2], DatasetInput()) == {"ep000000": [0], "ep000001": [1], "ep000002": [2]}
+    g = scene_groups(10, [0, 1, 2, 3, 4], DatasetInput(scene_group=2))
+    assert list(g.values()) == [[0, 1], [2, 3], [4]]
+    m = tmp_path / "map.json"
+    m.write_text(json.dumps({"kitchen": [0, 3], "desk": [1]}))
+    g = scene_groups(10, [0, 1, 2, 3], DatasetInput(scene_map=load_scene_map(m)))
+    assert g == {"kitchen": [0, 3], "desk": [1], "ep000002": [2]}
+    m.write_text(json.dumps({"a": [0], "b": [0]}))
+    with pytest.raises(AugmentError, match="episode 0 is in groups"):
+        scene_groups(10, [0], DatasetInput(scene_map=load_scene_map(m)))
+    m.write_text(json.dumps({"a": [12]}))
+    with pytest.raises(AugmentError, match="outside"):
+        scene_groups(10, [0], DatasetInput(scene_map=load_scene_map(m)))
+
+
+def test_background_shell_in_front_of_cameras():
+    from umi_aug.augment.dataset_source import background_shell_points
+    from umi_aug.geometry import pos_rotvec_to_pose
+
+    p6 = np.zeros((20, 6))
+    p6[:, 0] = np.linspace(0, 0.4, 20)
+    T = pos_rotvec_to_pose(p6)  # optical axes +z
+    pts = background_shell_points(T, 500, 8.0, np.random.default_rng(0))
+    c = T[:, :3, 3].mean(0)
+    r = np.linalg.norm(pts - c, axis=1)
+    assert len(pts) == 500 and np.allclose(r, r[0]) and r[0] == pytest.approx(8.0 * 0.5)  # spread 0.2 < 0.5 floor
+    assert ((pts - c) @ np.array([0, 0, 1.0]) > -0.2 * r).all()
+
+
+@pytest.mark.slow
+def test_real_demonstration_end_to_end(tmp_path):
+    """The real UMI episode → 1 free-space episode (few 3DGS steps): keys/dtypes/chunks kept, records, validated."""
+    if not REAL.exists():
+        pytest.skip(f"{REAL}: the real UMI demonstration lives in ../shared/realdata next to the repository "
+                    "(not part of a clone); CI has it")
+    from umi_aug.augment import AugmentConfig, SplatStageConfig
+    from umi_aug.augment.dataset_source import DatasetInput
+    from umi_aug.augment.exporter import export, read_episode_records
+    from umi_aug.data import ReplayBuffer, validate_replay_buffer
+
+    out = tmp_path / "real_aug.zarr.zip"
+    cfg = AugmentConfig(mode="freespace", n_per_demo=1, seed=0,
+                        splat=SplatStageConfig(iterations=20, max_gaussians=4000, sh_degree=0))
+    inp = DatasetInput(sfm_stride=6, background_points=500)
+    s = export(REAL, out, cfg, dataset_input=inp, progress=False)
+    assert s.n_failed == 0 and s.n_original == 1 and s.n_augmented == 1
+    rep = validate_replay_buffer(out)
+    assert rep.n_episodes == 2
+    rec = read_episode_records(out)
+    assert rec["aug_mode"].tolist() == [0, 1] and rec["aug_source_episode"].tolist() == [0, 0]
+    with ReplayBuffer.open(REAL) as src, ReplayBuffer.open(out) as dst:
+        assert dst.keys() == src.keys()
+        for k in src.keys():
+            assert dst[k].dtype == src[k].dtype and dst[k].chunks[1:] == src[k].chunks[1:], k
+        assert dst["camera0_rgb"].chunks == src["camera0_rgb"].chunks
+        np.testing.assert_array_equal(dst["camera0_rgb"][:400:50], src["camera0_rgb"][::50])
+        np.testing.assert_array_equal(dst["robot0_eef_pos"][:400], src["robot0_eef_pos"][:])
+        new = dst.get_episode(1)
+        splice = int(rec["aug_splice_index"][1])
+        assert np.isfinite(new["robot0_eef_pos"]).all() and new["camera0_rgb"][:splice].std() > 5
+        # the augmented episode starts elsewhere and ends on the demonstration's replayed tail
+        np.testing.assert_allclose(new["robot0_eef_pos"][-1], src["robot0_eef_pos"][399], atol=1e-5)
+    assert Path(s.pictures["contact_sheet"]).is_file()

@@ -1,0 +1,640 @@
+"""A plain UMI replay buffer (``*.zarr.zip`` / zarr directory, no session folder) as augmentation input.
+
+UMI's published datasets hold only the policy frames (``camera0_rgb``, ``S x S``, gripper polygon blacked out),
+TCP poses in the table-tag frame, gripper widths and ``meta/episode_ends``: no scan, no raw video. Per scene group
+(one episode by default; ``scene_group = N`` consecutive episodes, or an explicit map) this module builds what
+:class:`~umi_aug.augment.session_assets.SessionAssets` needs, each step a cached stage under
+``<work>/scenes/<group>/`` (:mod:`umi_aug.augment.cache`), one group at a time (never all scenes in memory):
+
+1. ``scene`` — camera poses ``T_world_cam = T_world_tcp @ inv(T_cam_tcp)`` (UMI's fixed offset, ``tcp_offset``
+   configurable, :func:`umi_aug.geometry.umi_T_cam_tcp`); the episodes' frames before the gripper first closes
+   (the scene is static there) → known-pose triangulation at the policy intrinsics
+   (:func:`umi_aug.recon.sfm.run_sfm`, gripper/mirror pixels masked) → cleaned cloud → SDF over the reachable
+   region → contact per episode (proximity + grasp onset, :func:`umi_aug.recon.contact.detect_contact`; an
+   episode whose sparse cloud never comes within the threshold falls back to the grasp onset from the widths);
+2. ``contact`` — the splice frame (shared with the session path);
+3. ``splat`` — fisheye 3DGS on the group's own pre-splice frames (every ``view_stride``-th; every
+   ``holdout_every``-th view held out), loss masked by UMI's gripper/mirror/finger polygons, initialised from
+   the triangulated cloud, topped up with random points, plus an optional far-background shell
+   (:func:`background_shell_points`);
+4. ``gripper_mask`` — the overlay mask (shared with the session path).
+
+:func:`check_dataset` rejects a bad dataset (missing keys, wrong image size, NaN poses, lost-tracking jumps)
+with ONE error naming the key and episode before anything is computed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from umi_aug.augment.cache import StageResult, run_stage
+from umi_aug.augment.config import AugmentConfig
+from umi_aug.augment.session_assets import (
+    _PROCESS_CACHE,
+    DemoInfo,
+    SessionAssets,
+    _stage_contact,
+    _stage_gripper_mask,
+    _stage_obstacles,
+)
+from umi_aug.errors import AugmentError, UmiAugError
+
+__all__ = ["DatasetInput", "DatasetAssets", "DatasetCheck", "is_dataset_path", "check_dataset",
+           "parse_episodes", "scene_groups", "dataset_fingerprint", "prepare_dataset", "background_shell_points",
+           "REQUIRED_KEYS"]
+
+log = logging.getLogger(__name__)
+
+#: Keys a plain UMI dataset must hold (robot 0, camera 0).
+REQUIRED_KEYS: tuple[str, ...] = ("camera0_rgb", "robot0_eef_pos", "robot0_eef_rot_axis_angle",
+                                  "robot0_gripper_width")
+#: Consecutive TCP poses further apart than this (metres per frame) mean a lost-tracking gap (UMI drops the
+#: untracked frames, so a gap shows as a jump). 0.05 m/frame = 3 m/s at 60 fps.
+MAX_STEP_M: float = 0.05
+#: Same, rotation (degrees per frame).
+MAX_STEP_DEG: float = 20.0
+#: Shortest episode that can be augmented (frames).
+MIN_EPISODE_FRAMES: int = 16
+#: Groups whose heavy members (SDF, Gaussians, problems) stay loaded per process.
+_MAX_LOADED_GROUPS = 2
+_LOADED: list[str] = []
+
+
+@dataclass(frozen=True)
+class DatasetInput:
+    """How a plain replay buffer becomes scenes.
+
+    Attributes:
+        tcp_offset_m: UMI's ``tcp_offset`` (gripper tip to mounting screw, metres) of ``T_cam_tcp``.
+        episodes: the episodes to augment (None: all); the others are copied unchanged.
+        scene_group: N > 1 → N consecutive episodes (``index // N``) share one scene.
+        scene_map: explicit groups ``{group name: [episode, ...]}`` (overrides ``scene_group``); episodes not
+            named get a scene of their own.
+        sfm_stride: every n-th pre-closing frame enters the triangulation.
+        sfm_upscale: frames are enlarged this many times (bicubic) for SIFT: 224² policy frames give few
+            features (563 points on the real cup episode at x1).
+        view_stride: every n-th pre-splice frame is a 3DGS view.
+        background_points: Gaussians on the far-background shell (0 = none).
+        background_radius: shell radius in multiples of the cameras' spread (≥ 3).
+        max_step_m / max_step_deg: lost-tracking jump thresholds per frame.
+    """
+
+    tcp_offset_m: float = 0.205
+    episodes: tuple[int, ...] | None = None
+    scene_group: int = 1
+    scene_map: Mapping[str, Sequence[int]] | None = None
+    sfm_stride: int = 1
+    sfm_upscale: int = 2
+    view_stride: int = 1
+    background_points: int = 4000
+    background_radius: float = 8.0
+    max_step_m: float = MAX_STEP_M
+    max_step_deg: float = MAX_STEP_DEG
+
+    @property
+    def T_cam_tcp(self) -> np.ndarray:
+        from umi_aug.geometry.umi import umi_T_cam_tcp
+
+        return umi_T_cam_tcp(tcp_offset=self.tcp_offset_m)
+
+
+def is_dataset_path(path: str | os.PathLike) -> bool:
+    """True for a ``*.zarr.zip`` / ``*.zip`` file or a zarr directory with ``data/`` and ``meta/`` groups (and no
+    ``demos/``, i.e. not a session folder)."""
+    p = Path(path)
+    if p.is_file():
+        return p.name.endswith(".zip")
+    return p.is_dir() and not (p / "demos").is_dir() and (p / "data").is_dir() and (p / "meta").is_dir()
+
+
+def parse_episodes(spec: str | None) -> tuple[int, ...] | None:
+    """``"0:50"`` / ``"3"`` / ``"0,2,5:8"`` → sorted episode indices (None for None/"" = all)."""
+    if spec is None or str(spec).strip() == "":
+        return None
+    out: set[int] = set()
+    for part in str(spec).split(","):
+        m = re.fullmatch(r"\s*(\d+)\s*(?::\s*(\d+)\s*)?", part)
+        if not m:
+            raise AugmentError(f"--episodes {spec!r}: expected 'A:B' (B exclusive), 'A' or a comma list of them")
+        a = int(m.group(1))
+        b = int(m.group(2)) if m.group(2) is not None else a + 1
+        if b <= a:
+            raise AugmentError(f"--episodes {spec!r}: empty range {a}:{b}")
+        out.update(range(a, b))
+    return tuple(sorted(out))
+
+
+def load_scene_map(path: str | os.PathLike) -> dict[str, list[int]]:
+    """A JSON scene map: ``{"kitchen": [0, 1, 2], "desk": [3]}`` or ``[[0, 1, 2], [3]]``."""
+    try:
+        raw = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise AugmentError(f"{path}: cannot read the scene map JSON ({exc})") from exc
+    if isinstance(raw, list):
+        raw = {f"group_{i:04d}": v for i, v in enumerate(raw)}
+    if not isinstance(raw, dict) or not all(isinstance(v, list) and all(isinstance(e, int) for e in v)
+                                            for v in raw.values()):
+        raise AugmentError(f"{path}: scene map must be {{name: [episode, ...]}} or [[episode, ...], ...]")
+    return {str(k): list(v) for k, v in raw.items()}
+
+
+def scene_groups(n_episodes: int, selected: Sequence[int], inp: DatasetInput) -> dict[str, list[int]]:
+    """``{group name: [episode, ...]}`` covering the ``selected`` episodes (ordered by first episode)."""
+    groups: dict[str, list[int]] = {}
+    owner: dict[int, str] = {}
+    if inp.scene_map:
+        for name, eps in inp.scene_map.items():
+            for e in eps:
+                if not 0 <= int(e) < n_episodes:
+                    raise AugmentError(f"scene map group {name!r}: episode {e} outside 0..{n_episodes - 1}")
+                if int(e) in owner:
+                    raise AugmentError(f"scene map: episode {e} is in groups {owner[int(e)]!r} and {name!r}")
+                owner[int(e)] = str(name)
+    n = max(1, int(inp.scene_group))
+    for e in selected:
+        g = owner.get(e, f"ep{e:06d}" if n == 1 else f"eps{(e // n) * n:06d}-{(e // n) * n + n - 1:06d}")
+        groups.setdefault(g, []).append(int(e))
+    return groups
+
+
+@dataclass
+class DatasetCheck:
+    """What :func:`check_dataset` read (small arrays only).
+
+    Attributes:
+        n_episodes, episode_ends, image_size: the dataset's layout.
+        T_world_tcp / gripper_width / fps: per selected episode ([T, 4, 4] metres, [T] metres, frames/s).
+    """
+
+    n_episodes: int
+    episode_ends: np.ndarray
+    image_size: int
+    T_world_tcp: dict[int, np.ndarray] = field(default_factory=dict)
+    gripper_width: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+def check_dataset(path: str | os.PathLike, image_size: int, inp: DatasetInput) -> DatasetCheck:
+    """Read and check a plain UMI dataset before any compute; ONE :class:`AugmentError` naming the key/episode.
+
+    Checks: readable; keys :data:`REQUIRED_KEYS` present; ``camera0_rgb`` uint8 ``[N, S, S, 3]`` with
+    ``S = image_size``; lowdim lengths = ``episode_ends[-1]``; per selected episode: at least
+    :data:`MIN_EPISODE_FRAMES` frames, finite poses and widths, no lost-tracking jump (consecutive TCP poses more
+    than ``max_step_m`` / ``max_step_deg`` apart) and no frozen-pose run (identical poses = SLAM holding the last
+    pose).
+    """
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.geometry import pos_rotvec_to_pose
+
+    p = Path(path)
+    if not p.exists():
+        raise AugmentError(f"{p}: no such dataset")
+    try:
+        buf = ReplayBuffer.open(p, check_values=False)  # NaN checked below, per episode (named)
+    except UmiAugError as exc:
+        raise AugmentError(f"{p}: not a readable UMI replay buffer ({exc})") from exc
+    with buf:
+        missing = [k for k in REQUIRED_KEYS if k not in buf]
+        if missing:
+            raise AugmentError(f"{p}: missing key(s) {['data/' + k for k in missing]} (have {buf.keys()}); a UMI "
+                               f"dataset from 07_generate_replay_buffer holds {list(REQUIRED_KEYS)}")
+        img = buf["camera0_rgb"]
+        if img.dtype != np.uint8 or img.ndim != 4 or tuple(img.shape[1:]) != (image_size, image_size, 3):
+            raise AugmentError(f"{p}: key 'data/camera0_rgb' is {img.dtype} {tuple(img.shape)}; expected uint8 "
+                               f"(N, {image_size}, {image_size}, 3) (--image-size {image_size}; pass the "
+                               f"dataset's own size)")
+        ends = np.asarray(buf.episode_ends, np.int64)
+        E = len(ends)
+        if E == 0:
+            raise AugmentError(f"{p}: 'meta/episode_ends' is empty (no episodes)")
+        for k in REQUIRED_KEYS:
+            if buf[k].shape[0] != ends[-1]:
+                raise AugmentError(f"{p}: key 'data/{k}' has {buf[k].shape[0]} rows, 'meta/episode_ends' ends at "
+                                   f"{ends[-1]}")
+        sel = range(E) if inp.episodes is None else inp.episodes
+        bad = [e for e in sel if not 0 <= e < E]
+        if bad:
+            raise AugmentError(f"{p}: --episodes {bad[:5]} outside the dataset's 0..{E - 1}")
+        pos_all = np.asarray(buf["robot0_eef_pos"][:], np.float64)
+        rot_all = np.asarray(buf["robot0_eef_rot_axis_angle"][:], np.float64)
+        w_all = np.asarray(buf["robot0_gripper_width"][:], np.float64).reshape(len(pos_all), -1)[:, 0]
+    out = DatasetCheck(E, ends, image_size)
+    starts = np.concatenate([[0], ends[:-1]])
+    for e in range(E):  # every episode is copied into the output: none may hold NaN
+        a, b = int(starts[e]), int(ends[e])
+        for k, v in (("robot0_eef_pos", pos_all[a:b]), ("robot0_eef_rot_axis_angle", rot_all[a:b]),
+                     ("robot0_gripper_width", w_all[a:b])):
+            fin = np.isfinite(v.reshape(b - a, -1)).all(axis=1)
+            if not fin.all():
+                raise AugmentError(f"{p}: episode {e}: key 'data/{k}' holds NaN/Inf at step {int(np.argmin(fin))} "
+                                   f"(row {a + int(np.argmin(fin))}); repair the dataset or drop the episode")
+    for e in sel:
+        a, b = int(starts[e]), int(ends[e])
+        where = f"{p}: episode {e} (rows {a}..{b - 1})"
+        if b - a < MIN_EPISODE_FRAMES:
+            raise AugmentError(f"{where}: {b - a} frames; an augmentable episode needs >= {MIN_EPISODE_FRAMES} "
+                               f"(leave it out with --episodes)")
+        pos, rot = pos_all[a:b], rot_all[a:b]
+        step = np.linalg.norm(np.diff(pos, axis=0), axis=1)
+        T = pos_rotvec_to_pose(np.concatenate([pos, rot], axis=1))
+        R_rel = np.einsum("nji,njk->nik", T[:-1, :3, :3], T[1:, :3, :3])
+        ang = np.degrees(np.arccos(np.clip((np.trace(R_rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+        jump = np.flatnonzero((step > inp.max_step_m) | (ang > inp.max_step_deg))
+        if len(jump):
+            i = int(jump[0])
+            raise AugmentError(f"{where}: key 'data/robot0_eef_pos'/'robot0_eef_rot_axis_angle' jumps "
+                               f"{step[i]:.3f} m / {ang[i]:.1f} deg between steps {i} and {i + 1} (a lost-tracking "
+                               f"gap; limits {inp.max_step_m} m, {inp.max_step_deg} deg per frame); split or drop "
+                               f"the episode (--episodes)")
+        frozen = (step == 0.0) & (ang == 0.0)
+        if len(frozen) >= 8:
+            run = np.convolve(frozen.astype(int), np.ones(8, int), mode="valid")
+            if (run == 8).any():
+                i = int(np.flatnonzero(run == 8)[0])
+                raise AugmentError(f"{where}: key 'data/robot0_eef_pos' is frozen (identical poses) from step {i} "
+                                   f"for >= 8 frames: tracking was lost and the last pose held; drop the episode")
+        out.T_world_tcp[e] = T
+        out.gripper_width[e] = w_all[a:b].copy()
+    return out
+
+
+def dataset_fingerprint(path: str | os.PathLike) -> str:
+    """Hash of the dataset file/directory: size + modification time of every file (cheap; content changes of the
+    same size within one second are not seen)."""
+    p = Path(path)
+    h = hashlib.sha256()
+    files = [p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file())
+    for q in files:
+        st = q.stat()
+        h.update(f"{q.relative_to(p) if q != p else q.name}:{st.st_size}:{int(st.st_mtime)};".encode())
+    return h.hexdigest()[:16]
+
+
+def background_shell_points(T_world_cam: np.ndarray, n: int, radius: float, rng: np.random.Generator,
+                            forward_only: bool = True) -> np.ndarray:
+    """``n`` points on a sphere of radius ``radius x`` (camera spread, ≥ 0.5 m) around the mean camera centre,
+    in the directions the cameras look (half-space of the mean optical axis when ``forward_only``): Gaussians for
+    the far background (sky, trees) that SfM cannot triangulate and that otherwise end up as floaters near the
+    cameras. World frame, metres."""
+    T = np.asarray(T_world_cam, np.float64).reshape(-1, 4, 4)
+    c = T[:, :3, 3]
+    spread = max(0.5, float(np.linalg.norm(c - c.mean(0), axis=1).max()))
+    d = rng.normal(size=(int(n) * 3, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    if forward_only:
+        fwd = T[:, :3, 2].mean(0)
+        fwd /= max(np.linalg.norm(fwd), 1e-9)
+        d = d[d @ fwd > -0.2]
+    return c.mean(0) + radius * spread * d[: int(n)]
+
+
+# ---------------------------------------------------------------------------------------------------- handle
+@dataclass
+class DatasetAssets(SessionAssets):
+    """:class:`SessionAssets` of a plain dataset: one scene per group; :meth:`for_demo` gives the handle of the
+    demo's group (its SDF, Gaussians, render views, overlay mask) that the per-episode functions use.
+
+    Attributes (besides the base ones): group_of: {episode: group name}; group_paths: {group: paths};
+    group_views: {group: [V, 4, 4] render views}; group_masks: {group: [S, S] bool}; T_cam_tcp: [4, 4].
+    """
+
+    group_of: dict[int, str] = field(default_factory=dict)
+    group_paths: dict[str, dict[str, str]] = field(default_factory=dict)
+    group_views: dict[str, np.ndarray] = field(default_factory=dict)
+    group_masks: dict[str, np.ndarray] = field(default_factory=dict)
+    T_cam_tcp: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def for_demo(self, demo_index: int) -> SessionAssets:
+        g = self.group_of.get(int(demo_index))
+        if g is None:
+            raise AugmentError(f"{self.session_dir}: episode {demo_index} was not selected for augmentation")
+        sa = SessionAssets(self.session_dir, self.work_dir, self.cfg, self.intrinsics, self.demos,
+                           self.group_views[g], self.group_masks[g], self.mask_info, dict(self.group_paths[g]),
+                           self.stages)
+        cid = sa.cache_id
+        if cid in _LOADED:
+            _LOADED.remove(cid)
+        _LOADED.append(cid)
+        while len(_LOADED) > _MAX_LOADED_GROUPS:  # never all scenes in memory
+            _PROCESS_CACHE.pop(_LOADED.pop(0), None)
+        sa._lazy = _PROCESS_CACHE.setdefault(cid, {})
+        return sa
+
+    def umi_episode(self, episode) -> dict[str, np.ndarray]:
+        """UMI keys of an augmented episode with THIS dataset's camera→TCP offset."""
+        from umi_aug.data import make_umi_episode
+
+        return make_umi_episode(np.asarray(episode.T_world_cam) @ self.T_cam_tcp, episode.gripper_width)
+
+
+# ------------------------------------------------------------------------------------------------------ stages
+def _policy_intrinsics(image_size: int):
+    from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
+
+    return gopro_intrinsics_2_7k().umi_policy(image_size)
+
+
+def _read_frames(dataset: Path, episode: int, idx: np.ndarray) -> np.ndarray:
+    from umi_aug.data import ReplayBuffer
+
+    with ReplayBuffer.open(dataset) as buf:
+        sl = buf.get_episode_slice(int(episode))
+        arr = buf["camera0_rgb"]
+        rows = np.asarray(idx, np.int64) + sl.start
+        return np.stack([arr[int(r)] for r in rows]) if len(rows) else np.zeros((0,) + arr.shape[1:], np.uint8)
+
+
+@dataclass
+class _Demo:  # what _stage_contact reads
+    name: str
+    T_world_cam: np.ndarray
+    gripper_width: np.ndarray
+
+
+def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict[int, _Demo], fps: dict[int, float],
+                 cfg: AugmentConfig, inp: DatasetInput) -> StageResult:
+    """Known-pose triangulation + cloud + SDF + contacts of one group (outputs as the session reconstruction's)."""
+    import cv2
+
+    from umi_aug.io_utils import atomic_write_text
+    from umi_aug.recon import constants as RC
+    from umi_aug.recon.cloud import clean_cloud, write_ply
+    from umi_aug.recon.contact import detect_contact
+    from umi_aug.recon.pipeline import first_close_index
+    from umi_aug.recon.sdf_grid import build_scene_sdf, reachable_region
+    from umi_aug.recon.sfm import feature_mask, run_sfm
+
+    rc = dataclasses.replace(cfg.recon, cone_half_angle_deg=cfg.cone_half_angle_deg)
+    up = max(1, int(inp.sfm_upscale))
+    intr = _policy_intrinsics(cfg.image_size * up)
+
+    def fn(out: Path):
+        frames_dir = out / "frames"
+        frames_dir.mkdir(parents=True, exist_ok=True)
+        paths, names, T, lengths = [], [], [], []
+        for e in eps:
+            d = demos[e]
+            end = first_close_index(d.gripper_width)
+            end = len(d.gripper_width) if end is None else max(int(end), 2)
+            idx = np.arange(0, end, max(1, inp.sfm_stride))
+            imgs = _read_frames(dataset, e, idx)
+            for i, im in zip(idx, imgs):
+                fpth = frames_dir / f"{d.name}_{int(i):05d}.png"
+                if up > 1:
+                    im = cv2.resize(im, (intr.width, intr.height), interpolation=cv2.INTER_CUBIC)
+                cv2.imwrite(str(fpth), cv2.cvtColor(im, cv2.COLOR_RGB2BGR))
+                paths.append(fpth)
+                names.append(f"{d.name}/{int(i):05d}.png")
+                T.append(d.T_world_cam[int(i)])
+            lengths.append(len(idx))
+        sfm_cfg = dataclasses.replace(rc.sfm, mode="known_poses")
+        try:
+            sfm = run_sfm(paths, names, intr, out / "colmap", sfm_cfg, sequence_lengths=lengths,
+                          T_world_cam=np.stack(T), masks=feature_mask(intr))
+        finally:
+            import shutil
+
+            shutil.rmtree(frames_dir, ignore_errors=True)
+            shutil.rmtree(out / "colmap", ignore_errors=True)
+        keep = (sfm.track_length >= RC.MIN_TRACK_LENGTH) & (sfm.errors_px <= RC.MAX_POINT_ERROR_PX)
+        # no radius-outlier removal: a single demo's cloud is sparse, isolated points are still real surface
+        cloud = clean_cloud(sfm.points[keep], sfm.colors[keep], sfm.view_dirs[keep], radius_m=0.0)
+        write_ply(out / "scene_cloud.ply", cloud)
+        theta = np.radians(rc.cone_half_angle_deg)
+        boxes = []
+        for e in eps:
+            d = demos[e]
+            c = first_close_index(d.gripper_width)
+            boxes.append(reachable_region(d.T_world_cam, len(d.gripper_width) - 1 if c is None else c, theta,
+                                          rc.cone_radius_m))
+        lo, hi = np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
+        rays = None
+        if rc.carve:
+            ok = sfm.registered[sfm.obs_image] & keep[sfm.obs_point]
+            rays = (sfm.T_world_cam[sfm.obs_image[ok], :3, 3], sfm.points[sfm.obs_point[ok]])
+        sdf = build_scene_sdf(cloud, lo, hi, rc.voxel_m, rc.inflation_m, max_voxels=rc.max_voxels, rays=rays)
+        sdf.save(out / "scene_sdf.npz")
+        contacts = []
+        for e in eps:
+            d = demos[e]
+            c = detect_contact(sdf, d.T_world_cam, d.gripper_width, fps[e], rc.contact_threshold_m, rc.contact_rule,
+                               rc.contact_overrides.get(d.name), d.name)
+            row = {"episode": d.name, "contact_index": c.contact_index, "proximity_index": c.proximity_index,
+                   "grasp_onset_index": c.grasp_onset_index, "rule": c.rule, "overridden": c.overridden,
+                   "min_clearance_m": float(c.clearance.min()), "message": c.message}
+            if c.contact_index is None:  # a sparse cloud of a single demo: fall back to the grasp onset
+                onset = first_close_index(d.gripper_width)
+                if onset is not None:
+                    row.update(contact_index=int(onset), rule="grasp (no proximity in the sparse cloud)")
+                    log.warning("contact: %s: %s; using the grasp onset %d", d.name, c.message, onset)
+            contacts.append(row)
+        report = {"dataset": str(dataset), "episodes": eps, "frame": "world = UMI table-tag frame, z up, metres",
+                  "sfm": {"mode": sfm.mode, "frames": len(names), "registered": int(sfm.registered.sum()),
+                          "points3D": int(len(sfm.points)), "mean_reproj_error_px": sfm.mean_reproj_error_px,
+                          "timings_s": sfm.timings_s},
+                  "cloud": {"points": len(cloud)},
+                  "sdf": {"lo": sdf.bounds[0].tolist(), "hi": sdf.bounds[1].tolist(), "voxel_m": sdf.voxel,
+                          "shape": list(sdf.shape)},
+                  "contacts": contacts, "timings_s": {}}
+        atomic_write_text(out / "recon_report.json", json.dumps(report, indent=2, default=float) + "\n")
+        info = {k: report[k] for k in ("sfm", "cloud", "sdf")}
+        return ({"cloud": "scene_cloud.ply", "sdf": "scene_sdf.npz", "report": "recon_report.json"},
+                ["scene_cloud.ply", "scene_sdf.npz", "recon_report.json"], info)
+
+    conf = {"recon": rc, "image_size": cfg.image_size, "sfm_stride": inp.sfm_stride, "up": up,
+            "tcp": inp.tcp_offset_m}
+    return run_stage("scene", work, conf, {"dataset": fp, "episodes": ",".join(map(str, eps))}, fn)
+
+
+def dataset_views(dataset: Path, demos: dict[int, _Demo], splice: dict[int, int], image_size: int,
+                  stride: int = 1, mask_finger: bool = True):
+    """3DGS views of a group: each episode's frames ``0..splice`` (every ``stride``-th) at the policy intrinsics,
+    loss mask = valid image circle minus UMI's gripper/mirror(/finger) polygons, and not the black pixels UMI's
+    pipeline painted. Returns ``(views, intrinsics)``."""
+    from umi_aug.splat.train import TrainView
+    from umi_aug.splat.train_session import loss_mask
+
+    intr = _policy_intrinsics(image_size)
+    base = loss_mask(intr, finger=mask_finger)
+    views = []
+    for e, d in demos.items():
+        if e not in splice:
+            continue
+        idx = np.arange(0, int(splice[e]) + 1, max(1, int(stride)))
+        for i, im in zip(idx, _read_frames(dataset, e, idx)):
+            views.append(TrainView(f"{d.name}/{int(i):05d}", im, d.T_world_cam[int(i)], base.copy()))
+    return views, intr
+
+
+def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, _Demo], scene: StageResult,
+                 contact: StageResult, cfg: AugmentConfig, inp: DatasetInput, progress: bool) -> StageResult:
+    from umi_aug.splat import write_ply
+    from umi_aug.splat.train import SplatTrainConfig, train_splat
+    from umi_aug.splat.train_session import read_point_cloud, top_up_init_points
+
+    sc = cfg.splat
+
+    def fn(out: Path):
+        rows = json.loads(contact.path("contacts").read_text())
+        by_name = {r["name"]: r for r in rows}
+        splice = {e: int(by_name[d.name]["splice_index"]) for e, d in demos.items()
+                  if by_name.get(d.name, {}).get("splice_index") is not None}
+        if not splice:
+            raise AugmentError(f"{dataset}: episodes {sorted(demos)}: no splice frame (see {contact.dir}); nothing "
+                               f"to train the scene on")
+        if sc.iterations == 0:
+            from umi_aug.augment.session_assets import _init_only_gaussians
+
+            write_ply(out / "scene.ply", _init_only_gaussians(scene.path("cloud"), sc.sh_degree))
+            return {"ply": "scene.ply"}, ["scene.ply"], {"trained": False}
+        views, intr = dataset_views(dataset, demos, splice, cfg.image_size, inp.view_stride)
+        tcfg = SplatTrainConfig(iterations=sc.iterations, max_gaussians=sc.max_gaussians, sh_degree=sc.sh_degree,
+                                holdout_every=sc.holdout_every, seed=cfg.seed, **dict(sc.extra))
+        rng = np.random.default_rng([cfg.seed, 0x1A17])
+        Tv = np.stack([v.T_world_cam for v in views])
+        xyz, rgb = read_point_cloud(scene.path("cloud"))
+        if len(xyz) > sc.max_gaussians // 2:
+            keep = np.sort(rng.choice(len(xyz), sc.max_gaussians // 2, replace=False))
+            xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
+        n_bg = min(int(inp.background_points), sc.max_gaussians // 4)
+        if n_bg > 0:
+            bg = background_shell_points(Tv, n_bg, inp.background_radius, rng)
+            bg_rgb = np.full((len(bg), 3), float(np.median(np.stack([v.image for v in views[::8]]))) / 255.0)
+            rgb = rng.uniform(0, 1, (len(xyz), 3)) if rgb is None else rgb
+            xyz, rgb = np.concatenate([xyz, bg]), np.concatenate([rgb, bg_rgb])
+        floor = int(0.5 * sc.max_gaussians)
+        if len(xyz) < floor:
+            xyz, rgb = top_up_init_points(xyz, rgb, floor, Tv, rng)
+        res = train_splat(views, intr, xyz, rgb, tcfg, out, progress=progress)
+        rel = Path(res.ply_path).resolve().relative_to(out.resolve()).as_posix()
+        info = {"trained": True, "views": len(views), "heldout_psnr": float(res.heldout_psnr),
+                "heldout_ssim": float(res.heldout_ssim), "gaussians": int(res.gaussians.n),
+                "train_seconds": float(res.history[-1]["seconds"]) if res.history else None}
+        return {"ply": rel}, [rel], info
+
+    conf = {"splat": sc, "seed": cfg.seed, "view_stride": inp.view_stride, "bg": (inp.background_points,
+                                                                                  inp.background_radius)}
+    return run_stage("splat", work, conf, {"dataset": fp, "scene": scene.key, "contact": contact.key}, fn)
+
+
+def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg: AugmentConfig,
+                    inp: DatasetInput = DatasetInput(), *, renders: bool = True, progress: bool = True
+                    ) -> DatasetAssets:
+    """Check the dataset, then build (or reuse from ``work_dir``) each selected group's scene, one at a time.
+
+    Args:
+        dataset: plain UMI replay buffer (``*.zarr.zip`` or zarr directory).
+        work_dir: stage cache (``scenes/<group>/<stage>/``).
+        cfg: :class:`AugmentConfig` (``image_size`` must be the dataset's).
+        inp: :class:`DatasetInput`.
+        renders: False → plan only (no 3DGS / mask / obstacle Gaussians).
+    Raises:
+        AugmentError: a bad dataset (before any compute) or a failed stage (named with its group).
+    """
+    from tqdm import tqdm
+
+    from umi_aug.geometry.umi import camera_poses_from_tcp_poses
+
+    dataset, work = Path(dataset), Path(work_dir)
+    chk = check_dataset(dataset, cfg.image_size, inp)
+    fp = dataset_fingerprint(dataset)
+    selected = sorted(chk.T_world_tcp)
+    groups = scene_groups(chk.n_episodes, selected, inp)
+    T_cam_tcp = inp.T_cam_tcp
+    demos_all: dict[int, _Demo] = {}
+    fps: dict[int, float] = {}
+    for e in selected:
+        demos_all[e] = _Demo(f"episode_{e:06d}", camera_poses_from_tcp_poses(chk.T_world_tcp[e], T_cam_tcp),
+                             chk.gripper_width[e])
+        fps[e] = 59.94  # UMI keeps every frame of the GoPro's 59.94 fps video
+    work.mkdir(parents=True, exist_ok=True)
+    contact_idx: dict[int, int | None] = {}
+    group_paths, group_views, group_masks, group_of = {}, {}, {}, {}
+    stages: dict[str, StageResult] = {}
+    obs = None
+    if renders and "obstacle" in cfg.modes:
+        try:
+            obs = stages["obstacles"] = _stage_obstacles(work, cfg)
+        except UmiAugError as exc:
+            raise AugmentError(f"stage obstacles failed: {exc}") from exc
+    mask_info: dict = {}
+    for g, eps in tqdm(list(groups.items()), desc="scenes", unit="group", disable=not progress or len(groups) < 2):
+        gw = work / "scenes" / g
+        gd = {e: demos_all[e] for e in eps}
+        try:
+            scene = _stage_scene(gw, dataset, fp, eps, gd, fps, cfg, inp)
+            contact = _stage_contact(gw, scene, _Sess([gd[e] for e in eps]), dict(cfg.recon.contact_overrides),
+                                     cfg.pregrasp_clearance_m)
+            rows = json.loads(contact.path("contacts").read_text())
+            for e, r in zip(eps, rows):
+                contact_idx[e] = r["splice_index"]
+            paths = {"sdf": str(scene.path("sdf")), "cloud": str(scene.path("cloud")), "dataset": str(dataset)}
+            mask = np.zeros((cfg.image_size, cfg.image_size), bool)
+            if renders:
+                splat = _stage_splat(gw, dataset, fp, gd, scene, contact, cfg, inp, progress)
+                infos = [DemoInfo(e, gd[e].name, gd[e].T_world_cam, np.zeros(0), gd[e].gripper_width,
+                                  contact_idx[e]) for e in eps]
+                gm = _stage_gripper_mask(gw, cfg, fp, dataset, infos, contact)
+                paths["splat"] = str(splat.path("ply"))
+                mask, mask_info = np.load(gm.path("mask")), gm.info
+                stages[f"{g}/splat"] = splat
+                stages[f"{g}/gripper_mask"] = gm
+            stages[f"{g}/scene"], stages[f"{g}/contact"] = scene, contact
+        except UmiAugError as exc:
+            raise AugmentError(f"scene group {g} (episodes {eps}): stage failed: {exc}") from exc
+        if obs is not None:
+            for name in cfg.obstacle.assets:
+                paths[f"obstacle/{name}"] = str(obs.path(name))
+        views = [gd[e].T_world_cam[: contact_idx[e] + 1] for e in eps if contact_idx[e] is not None]
+        group_paths[g] = paths
+        group_views[g] = np.concatenate(views) if views else np.zeros((0, 4, 4))
+        group_masks[g] = mask
+        for e in eps:
+            group_of[e] = g
+    from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
+
+    demos = []
+    ends = chk.episode_ends
+    for e in range(chk.n_episodes):
+        if e in demos_all:
+            d = demos_all[e]
+            Tc, w = d.T_world_cam, d.gripper_width
+        else:  # not selected: copied as is, never augmented (poses not needed)
+            n = int(ends[e] - (ends[e - 1] if e else 0))
+            Tc, w = np.tile(np.eye(4), (n, 1, 1)), np.zeros(n)
+        demos.append(DemoInfo(e, f"episode_{e:06d}", Tc, np.arange(len(w)) / fps.get(e, 59.94), w,
+                              contact_idx.get(e)))
+    first = group_of[selected[0]] if selected else None
+    return DatasetAssets(dataset, work, cfg, gopro_intrinsics_2_7k(), demos,
+                         group_views.get(first, np.zeros((0, 4, 4))), group_masks.get(first, np.zeros((1, 1), bool)),
+                         mask_info, {"dataset": str(dataset), **(group_paths.get(first, {}))}, stages,
+                         group_of=group_of, group_paths=group_paths, group_views=group_views, group_masks=group_masks,
+                         T_cam_tcp=T_cam_tcp)
+
+
+@dataclass
+class _Sess:
+    demos: list[_Demo]
+
+
+def describe(assets: DatasetAssets) -> dict[str, Any]:
+    """Per group: episodes, cloud points, contact/splice frames and the 3DGS held-out metrics (JSON)."""
+    out = {}
+    for g in assets.group_paths:
+        eps = sorted(e for e, gg in assets.group_of.items() if gg == g)
+        row: dict[str, Any] = {"episodes": eps}
+        for k in ("scene", "contact", "splat"):
+            st = assets.stages.get(f"{g}/{k}")
+            if st is not None:
+                row[k] = st.info
+        out[g] = row
+    return out
