@@ -2,8 +2,13 @@
 
 The manifest holds the stage's key = hash(stage name, version, its config subset, its inputs' keys). A stage is
 up to date (skipped, logged) when its manifest exists with the same key and every listed output file exists. A
-manifest with another key means stale outputs: the folder is cleared before the stage runs. No manifest (an
-interrupted run) keeps the folder, so a stage that resumes on its own (3DGS training) picks up where it stopped.
+manifest with another key means stale outputs: the folder is cleared before the stage runs. An interrupted run
+(no manifest) keeps the folder only when its ``pending.json`` — written before the stage starts — names the same
+key, so a stage that resumes on its own (3DGS training) picks up where it stopped; partial work of another
+configuration/input (or of unknown origin) is cleared instead of blocking the run.
+
+Keys are content keys: the stages' ``inputs`` carry the content fingerprints of what they read (the session's
+dataset and intrinsics, :func:`umi_aug.data.fingerprint.content_fingerprint`), never sizes alone.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ __all__ = ["StageResult", "run_stage", "read_manifest", "MANIFEST"]
 log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
+#: Key of the run that is (or was, when interrupted) computing the stage; removed with the manifest's write.
+PENDING = "pending.json"
 
 
 @dataclass
@@ -52,11 +59,15 @@ class StageResult:
 
 def read_manifest(stage_dir: Path) -> dict | None:
     """The stage's manifest dict, or None when missing/unreadable."""
-    p = Path(stage_dir) / MANIFEST
+    return _read_json(Path(stage_dir) / MANIFEST)
+
+
+def _read_json(p: Path) -> dict | None:
     try:
-        return json.loads(p.read_text())
+        v = json.loads(p.read_text())
     except (OSError, ValueError):
         return None
+    return v if isinstance(v, dict) else None
 
 
 def _outputs_exist(stage_dir: Path, files: list[str]) -> bool:
@@ -88,7 +99,17 @@ def run_stage(name: str, work_dir: Path, config: Any, inputs: dict[str, str],
     if man is not None and stage_dir.exists():
         log.info("stage %s: stale (key %s → %s), clearing %s", name, man.get("key"), key, stage_dir)
         shutil.rmtree(stage_dir)
+    elif stage_dir.exists() and any(stage_dir.iterdir()):
+        pending = _read_json(stage_dir / PENDING)
+        if pending is None or pending.get("key") != key:
+            log.warning("stage %s: clearing the partial work of an interrupted run of another configuration/input "
+                        "(key %s, this run %s) in %s", name, None if pending is None else pending.get("key"), key,
+                        stage_dir)
+            shutil.rmtree(stage_dir)
+        else:
+            log.info("stage %s: resuming the interrupted run in %s", name, stage_dir)
     stage_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(stage_dir / PENDING, json.dumps({"stage": name, "key": key}) + "\n")
     log.info("stage %s: running (key %s)", name, key)
     t0 = time.perf_counter()
     outputs, files, info = fn(stage_dir)
@@ -100,4 +121,5 @@ def run_stage(name: str, work_dir: Path, config: Any, inputs: dict[str, str],
                 "outputs": outputs, "files": list(files), "info": info, "seconds": round(seconds, 3),
                 "finished_unix": time.time()}
     atomic_write_text(stage_dir / MANIFEST, json.dumps(manifest, indent=2, default=str) + "\n")
+    (stage_dir / PENDING).unlink(missing_ok=True)
     return StageResult(name, stage_dir, key, outputs, False, seconds, info)

@@ -9,6 +9,10 @@ which worker runs it) and results come back in the order of ``items``, so they a
 * ``"ray"`` — a local Ray cluster with ``workers`` CPUs (no network needed), or an existing cluster when
   ``address`` is given (``"auto"`` or ``"ray://host:10001"``). Ray is imported only here, only then.
 
+No worker outlives its parent: on Linux each pool worker asks the kernel for SIGKILL when its parent dies
+(``prctl(PR_SET_PDEATHSIG)``) and checks that the parent is still there; workers ignore SIGINT (a Ctrl-C in the
+terminal reaches the whole process group: the parent alone handles it and terminates its workers).
+
 Each worker process runs with ``threads_per_worker`` BLAS/OpenMP/numba/torch threads (default: cores / workers),
 so ``workers x threads`` never oversubscribes the machine.
 """
@@ -47,7 +51,33 @@ def _threads_env(threads: int) -> dict[str, str]:
             "OPENBLAS_NUM_THREADS": "1", "OMP_WAIT_POLICY": "passive"}
 
 
-def _worker_init(threads: int) -> None:
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent_pid: int | None = None) -> bool:
+    """Make the kernel SIGKILL this process when its parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``); if the
+    parent (``parent_pid``) is already gone, exit now. Returns False where unsupported (no-op)."""
+    import ctypes
+    import signal
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        ok = libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+    if parent_pid is not None and os.getppid() != parent_pid:  # the parent died before prctl
+        os._exit(1)
+    return ok
+
+
+def _worker_init(threads: int, parent_pid: int | None = None) -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    die_with_parent(parent_pid)
     os.environ.update(_threads_env(threads))
     configure_threads(threads)
 
@@ -94,20 +124,25 @@ def _map_pool(fn: Callable[[T], R], items: Iterable[T], workers: int, threads: i
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
-                             initargs=(threads,)) as pool:
-        pending: deque = deque()
-        it = iter(items)
-        try:
-            for item in it:
-                pending.append(pool.submit(_call, fn, item, threads))
-                if len(pending) >= ahead:
-                    yield pending.popleft().result()
-            while pending:
+    pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
+                               initargs=(threads, os.getpid()))
+    pending: deque = deque()
+    finished = False
+    try:
+        for item in items:
+            pending.append(pool.submit(_call, fn, item, threads))
+            if len(pending) >= ahead:
                 yield pending.popleft().result()
-        finally:
-            for f in pending:
-                f.cancel()
+        while pending:
+            yield pending.popleft().result()
+        finished = True
+    finally:
+        for f in pending:
+            f.cancel()
+        if not finished:  # an error, Ctrl-C or a consumer that stopped: do not wait for running tasks
+            for p in list((getattr(pool, "_processes", None) or {}).values()):
+                p.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _ray():

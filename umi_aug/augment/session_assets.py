@@ -215,8 +215,11 @@ def load_obstacle_asset(asset: str):
 
 
 def session_fingerprint(session_dir: Path) -> str:
-    """Hash of what the stages read from a session: names and sizes of every file under ``demos/`` and
-    ``calibration/``, ``dataset.zarr.zip``'s size, and the content of the CSV/JSON files."""
+    """Content hash of what the stages read from a session: every file under ``demos/`` and ``calibration/``
+    (CSV/JSON/intrinsics whole, videos by size + first/last MiB) and ``dataset.zarr.zip``'s entries with their
+    CRCs (:func:`umi_aug.data.fingerprint.content_fingerprint`): an in-place edit of the same size changes it."""
+    from umi_aug.data.fingerprint import content_fingerprint, file_fingerprint
+
     root = Path(session_dir)
     h = hashlib.sha256()
     for sub in ("demos", "calibration"):
@@ -225,11 +228,9 @@ def session_fingerprint(session_dir: Path) -> str:
             for fn in sorted(filenames):
                 p = Path(dirpath) / fn
                 rel = p.relative_to(root).as_posix()
-                h.update(f"{rel}:{p.stat().st_size};".encode())
-                if p.suffix in (".csv", ".json"):
-                    h.update(p.read_bytes())
+                h.update(f"{rel}:{file_fingerprint(p)};".encode())
     ds = root / "dataset.zarr.zip"
-    h.update(f"dataset:{ds.stat().st_size if ds.exists() else -1}".encode())
+    h.update(f"dataset:{content_fingerprint(ds) if ds.exists() else -1}".encode())
     return h.hexdigest()[:16]
 
 

@@ -2,6 +2,10 @@
 
 Each malformed case raises one :class:`~umi_aug.errors.DatasetError` naming the file and the key;
 harmless deviations from UMI's layout (chunks, dtypes) become warnings in the report.
+
+Chunks: the listing of every ``data/*`` array is checked to be complete (a missing chunk silently reads as the
+fill value: black frames); ``deep=True`` also decodes every chunk (a garbage chunk raises there, naming the
+chunk and its rows, instead of an anonymous codec traceback in training).
 """
 
 from __future__ import annotations
@@ -122,7 +126,64 @@ def _check_data_array(key: str, arr: zarr.Array, n_steps: int, name: str, check_
             raise DatasetError(f"{where} holds NaN/Inf, first at row {row}: {arr[row].tolist()}")
 
 
-def _validate_root(root: zarr.Group, name: str, check_values: bool) -> ValidationReport:
+def expected_chunk_keys(arr: zarr.Array) -> list[str]:
+    """Store keys (relative to the array) of every chunk of ``arr``, in row order."""
+    import itertools
+
+    grid = [range(-(-s // c)) for s, c in zip(arr.shape, arr.chunks)]
+    sep = getattr(arr, "_dimension_separator", None) or "."
+    return [sep.join(map(str, idx)) for idx in itertools.product(*grid)]
+
+
+def _stored_chunk_keys(arr: zarr.Array) -> set[str]:
+    prefix = f"{arr.path}/" if arr.path else ""
+    store = arr.chunk_store if arr.chunk_store is not None else arr.store
+    listdir = getattr(store, "listdir", None)
+    if callable(listdir) and "/" not in (getattr(arr, "_dimension_separator", None) or "."):
+        try:
+            return set(listdir(arr.path))
+        except Exception:  # noqa: BLE001 - fall back to the full key listing
+            pass
+    return {k[len(prefix):] for k in store.keys() if k.startswith(prefix)}
+
+
+def check_chunk_listing(key: str, arr: zarr.Array, name: str) -> None:
+    """Raise when a chunk of ``data/<key>`` is missing from the store (the listing only; nothing is decoded)."""
+    if arr.ndim == 0 or arr.shape[0] == 0:
+        return
+    stored = _stored_chunk_keys(arr)
+    expected = expected_chunk_keys(arr)
+    missing = [k for k in expected if k not in stored]
+    if missing:
+        row = int(missing[0].replace("/", ".").split(".")[0]) * arr.chunks[0]
+        raise DatasetError(f"{name}: key 'data/{key}': {len(missing)} of {len(expected)} chunks missing, first "
+                           f"'{missing[0]}' (rows {row}..{min(row + arr.chunks[0], arr.shape[0]) - 1}); they would "
+                           f"read as fill value {arr.fill_value!r} (black frames / zeros). The dataset is truncated or "
+                           f"was copied incompletely: re-copy or re-create it")
+
+
+def decode_all_chunks(key: str, arr: zarr.Array, name: str, progress: bool = False) -> int:
+    """Decode every chunk of ``data/<key>`` (one row block at a time); raise naming the first bad chunk.
+
+    Returns the number of chunks decoded.
+    """
+    from tqdm import tqdm
+
+    c0 = arr.chunks[0]
+    n = -(-arr.shape[0] // c0) if arr.ndim else 0
+    for i in tqdm(range(n), desc=f"decode data/{key}", unit="chunk", disable=not progress, leave=False,
+                  dynamic_ncols=True):
+        try:
+            arr[i * c0:(i + 1) * c0]
+        except Exception as exc:  # codec errors are of many types (imagecodecs, numcodecs, zlib, ValueError)
+            raise DatasetError(f"{name}: key 'data/{key}': chunk {i} (rows {i * c0}..{min((i + 1) * c0, arr.shape[0]) - 1}) "
+                               f"cannot be decoded ({type(exc).__name__}: {exc}); the chunk is corrupt: re-copy "
+                               f"or re-create the dataset") from exc
+    return n
+
+
+def _validate_root(root: zarr.Group, name: str, check_values: bool, deep: bool = False,
+                   progress: bool = False) -> ValidationReport:
     groups = set(root.group_keys())
     for g in (schema.DATA_GROUP, schema.META_GROUP):
         if g not in groups:
@@ -144,6 +205,14 @@ def _validate_root(root: zarr.Group, name: str, check_values: bool) -> Validatio
     for key in sorted(data.array_keys()):
         arr = open_array(data, key, name)
         _check_data_array(key, arr, n_steps, name, check_values, warnings)
+        try:
+            check_chunk_listing(key, arr, name)
+        except DatasetError as exc:
+            if schema.is_image_key(key):
+                raise
+            warnings.append(f"{exc} (a zarr written with write_empty_chunks=False leaves all-fill chunks out)")
+        if deep:
+            decode_all_chunks(key, arr, name, progress)
         report.keys[key] = ArrayInfo(tuple(arr.shape), str(arr.dtype), tuple(arr.chunks),
                                      arr.compressor.codec_id if arr.compressor is not None else None)
     return report
@@ -151,14 +220,17 @@ def _validate_root(root: zarr.Group, name: str, check_values: bool) -> Validatio
 
 def validate_replay_buffer(root_or_path: zarr.Group | str | os.PathLike | Any,
                            name_for_messages: str | None = None,
-                           check_values: bool = True) -> ValidationReport:
+                           check_values: bool = True, deep: bool = False,
+                           progress: bool = False) -> ValidationReport:
     """Check a UMI replay buffer and describe it.
 
     Args:
         root_or_path: a zarr root group, a :class:`ReplayBuffer` (its ``root``), or the path of a zarr
             directory / ``.zarr.zip`` (opened read-only, lazily, and closed again).
         name_for_messages: what error messages call the buffer (default: the path, or ``<in-memory>``).
-        check_values: also read the pose/gripper arrays and reject NaN/Inf (images are never decoded).
+        check_values: also read the pose/gripper arrays and reject NaN/Inf.
+        deep: decode every chunk of every ``data/*`` array (images included; slow on big datasets).
+        progress: a progress bar per array while decoding (``deep``).
 
     Returns:
         ValidationReport with ``n_episodes``, ``n_steps`` (= ``episode_ends[-1]``), per-key layout and
@@ -166,18 +238,19 @@ def validate_replay_buffer(root_or_path: zarr.Group | str | os.PathLike | Any,
 
     Raises:
         DatasetError: one per malformed case (missing groups/keys, bad episode_ends, length mismatch,
-            bad image/pose shapes or dtypes, NaN/Inf in pose arrays, unknown codec, unreadable path).
+            bad image/pose shapes or dtypes, NaN/Inf in pose arrays, unknown codec, unreadable path, missing
+            chunks; with ``deep`` an undecodable chunk).
     """
     register_codecs()
     if isinstance(root_or_path, (str, os.PathLike)):
         name = name_for_messages or str(root_or_path)
         store, root = open_store(root_or_path, mode="r")
         try:
-            return _validate_root(root, name, check_values)
+            return _validate_root(root, name, check_values, deep, progress)
         finally:
             close_store(store)
     root = getattr(root_or_path, "root", root_or_path)
     if not isinstance(root, zarr.Group):
         raise DatasetError(f"validate_replay_buffer: expected a zarr.Group, ReplayBuffer or path, got "
                            f"{type(root_or_path).__name__}")
-    return _validate_root(root, name_for_messages or "<in-memory replay buffer>", check_values)
+    return _validate_root(root, name_for_messages or "<in-memory replay buffer>", check_values, deep, progress)
