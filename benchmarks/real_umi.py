@@ -63,16 +63,35 @@ def train_variant(assets, variant: str, iterations: int, max_gaussians: int, eva
                         for h in res.history]}
 
 
+def docs_pictures(pictures: dict, docs: Path, width: int = 1100) -> list[str]:
+    """Small JPEG copies (at most ``width`` px wide) of the export's contact sheet and trajectory plot."""
+    import cv2
+
+    out = []
+    for k, v in pictures.items():
+        name = "real_contact_sheet.jpg" if k == "contact_sheet" else "real_trajectories.jpg"
+        img = cv2.imread(str(v))
+        if img is None:
+            continue
+        if img.shape[1] > width:
+            img = cv2.resize(img, (width, round(img.shape[0] * width / img.shape[1])), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(docs / name), img, [cv2.IMWRITE_JPEG_QUALITY, 80])
+        out.append(str(docs / name))
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset", default=str(REAL))
     ap.add_argument("--work", default="/tmp/umi_aug_bench_real")
+    ap.add_argument("--stages", default=None, help="stage cache (default <work>/stages; e.g. an export's .work)")
     ap.add_argument("--iterations", type=int, default=600)
     ap.add_argument("--max-gaussians", type=int, default=30_000)
     ap.add_argument("--eval-every", type=int, default=100)
     ap.add_argument("--variants", nargs="*", default=["random", "sfm", "sfm+bg"])
     ap.add_argument("--augment", type=int, default=0, help="also run the export with -n N --mode both")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--docs", action="store_true", help="write small JPEG copies of the pictures to docs/real_*.jpg")
     args = ap.parse_args()
     configure_threads(args.threads)
     logging.basicConfig(level=logging.WARNING)
@@ -89,7 +108,7 @@ def main() -> int:
     work = Path(args.work)
     console = Console()
     t0 = time.perf_counter()
-    assets = prepare_dataset(ds, work / "stages", AugmentConfig(), DatasetInput(), renders=False, progress=False)
+    assets = prepare_dataset(ds, Path(args.stages) if args.stages else work / "stages", AugmentConfig(), DatasetInput(), renders=False, progress=False)
     scene_s = time.perf_counter() - t0
     info = assets.stages[f"{assets.group_of[0]}/scene"].info
     console.print(f"scene stage: {scene_s:.1f} s (cached: {assets.stages[f'{assets.group_of[0]}/scene'].skipped}); "
@@ -121,6 +140,8 @@ def main() -> int:
         aug = {"wall_s": time.perf_counter() - t1, "n_augmented": s.n_augmented, "n_failed": s.n_failed,
                "pictures": s.pictures, "stages": s.stages}
         console.print(summary_table(s))
+        if args.docs:
+            aug["docs"] = docs_pictures(s.pictures, Path(__file__).resolve().parents[1] / "docs")
     out = work / "real_umi.json"
     out.write_text(json.dumps({"scene_s": scene_s, "scene": info, "variants": rows, "augment": aug}, indent=2,
                               default=float) + "\n")

@@ -120,7 +120,9 @@ def test_bad_dataset_export_writes_nothing(tmp_path, good):
     with pytest.raises(AugmentError, match="episode 0"):
         export(p, out, AugmentConfig(image_size=S), resume=False)
     assert out.read_bytes() == b"previous export"
-    assert not (tmp_path / "out.zarr.zip.work").exists() and not (tmp_path / "out.zarr.zip.partial").exists()
+    work = tmp_path / "out.zarr.zip.work"  # may hold the run's lock file, never a stage
+    assert not (work / "scenes").exists() and not (work / "obstacles").exists()
+    assert not (tmp_path / "out.zarr.zip.partial").exists()
 
 
 def test_episode_selection_and_groups(tmp_path):

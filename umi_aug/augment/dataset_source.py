@@ -65,6 +65,8 @@ MAX_STEP_M: float = 0.05
 MAX_STEP_DEG: float = 20.0
 #: Shortest episode that can be augmented (frames).
 MIN_EPISODE_FRAMES: int = 16
+#: Cloud points further than this outside the reachable region are left out of the SDF (metres).
+SDF_CROP_M: float = 0.15
 #: Groups whose heavy members (SDF, Gaussians, problems) stay loaded per process.
 _MAX_LOADED_GROUPS = 2
 _LOADED: list[str] = []
@@ -93,7 +95,7 @@ class DatasetInput:
     episodes: tuple[int, ...] | None = None
     scene_group: int = 1
     scene_map: Mapping[str, Sequence[int]] | None = None
-    sfm_stride: int = 1
+    sfm_stride: int = 2
     sfm_upscale: int = 2
     view_stride: int = 1
     background_points: int = 4000
@@ -368,12 +370,12 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
     from umi_aug.io_utils import atomic_write_text
     from umi_aug.recon import constants as RC
     from umi_aug.recon.cloud import clean_cloud, write_ply
-    from umi_aug.recon.contact import detect_contact
     from umi_aug.recon.pipeline import first_close_index
-    from umi_aug.recon.sdf_grid import build_scene_sdf, reachable_region
     from umi_aug.recon.sfm import feature_mask, run_sfm
 
-    rc = dataclasses.replace(cfg.recon, cone_half_angle_deg=cfg.cone_half_angle_deg)
+    # known poses always (the TCP poses are the SLAM's); the same key whatever sfm.mode the caller left
+    rc = dataclasses.replace(cfg.recon, cone_half_angle_deg=cfg.cone_half_angle_deg,
+                             sfm=dataclasses.replace(cfg.recon.sfm, mode="known_poses"))
     up = max(1, int(inp.sfm_upscale))
     intr = _policy_intrinsics(cfg.image_size * up)
 
@@ -396,9 +398,8 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
                 names.append(f"{d.name}/{int(i):05d}.png")
                 T.append(d.T_world_cam[int(i)])
             lengths.append(len(idx))
-        sfm_cfg = dataclasses.replace(rc.sfm, mode="known_poses")
         try:
-            sfm = run_sfm(paths, names, intr, out / "colmap", sfm_cfg, sequence_lengths=lengths,
+            sfm = run_sfm(paths, names, intr, out / "colmap", rc.sfm, sequence_lengths=lengths,
                           T_world_cam=np.stack(T), masks=feature_mask(intr))
         finally:
             import shutil
@@ -409,6 +410,37 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
         # no radius-outlier removal: a single demo's cloud is sparse, isolated points are still real surface
         cloud = clean_cloud(sfm.points[keep], sfm.colors[keep], sfm.view_dirs[keep], radius_m=0.0)
         write_ply(out / "scene_cloud.ply", cloud)
+        info = {"sfm": {"mode": sfm.mode, "frames": len(names), "registered": int(sfm.registered.sum()),
+                        "points3D": int(len(sfm.points)), "mean_reproj_error_px": sfm.mean_reproj_error_px,
+                        "timings_s": sfm.timings_s},
+                "cloud": {"points": len(cloud)}}
+        atomic_write_text(out / "sfm_report.json", json.dumps(info, indent=2, default=float) + "\n")
+        return {"cloud": "scene_cloud.ply", "sfm_report": "sfm_report.json"}, ["scene_cloud.ply"], info
+
+    conf = {"recon": rc, "image_size": cfg.image_size, "sfm_stride": inp.sfm_stride, "up": up,
+            "tcp": inp.tcp_offset_m}
+    return run_stage("scene", work, conf, {"dataset": fp, "episodes": ",".join(map(str, eps))}, fn)
+
+
+def _stage_sdf(work: Path, dataset: Path, scene: StageResult, eps: list[int], demos: dict[int, _Demo],
+               fps: dict[int, float], cfg: AugmentConfig) -> StageResult:
+    """SDF of one group over the reachable region + contact per episode (``recon_report.json`` as the session
+    reconstruction writes it).
+
+    The field is UNSIGNED (distance to the nearest cloud point minus half a voxel diagonal): a single demo's sparse
+    cloud (mostly far background, few table points) has normals too poor for the inside/outside vote, which put
+    the demo's own camera path 17 cm "inside" on the real cup episode. Points further than ``SDF_CROP_M`` outside
+    the region are left out. A trajectory cannot tunnel through a surface without coming within the clearance.
+    """
+    from umi_aug.io_utils import atomic_write_text
+    from umi_aug.recon.cloud import SceneCloud, read_ply
+    from umi_aug.recon.contact import detect_contact
+    from umi_aug.recon.pipeline import first_close_index
+    from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, reachable_region
+
+    rc = dataclasses.replace(cfg.recon, cone_half_angle_deg=cfg.cone_half_angle_deg)
+
+    def fn(out: Path):
         theta = np.radians(rc.cone_half_angle_deg)
         boxes = []
         for e in eps:
@@ -417,11 +449,16 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
             boxes.append(reachable_region(d.T_world_cam, len(d.gripper_width) - 1 if c is None else c, theta,
                                           rc.cone_radius_m))
         lo, hi = np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
-        rays = None
-        if rc.carve:
-            ok = sfm.registered[sfm.obs_image] & keep[sfm.obs_point]
-            rays = (sfm.T_world_cam[sfm.obs_image[ok], :3, 3], sfm.points[sfm.obs_point[ok]])
-        sdf = build_scene_sdf(cloud, lo, hi, rc.voxel_m, rc.inflation_m, max_voxels=rc.max_voxels, rays=rays)
+        cloud = read_ply(scene.path("cloud"))
+        inside = ((cloud.points >= lo - SDF_CROP_M) & (cloud.points <= hi + SDF_CROP_M)).all(axis=1)
+        if inside.sum() < 50:
+            raise AugmentError(f"{dataset}: episodes {eps}: {int(inside.sum())} of {len(cloud)} triangulated points "
+                               f"lie near the reachable region; too little of the scene around the gripper to "
+                               f"check collisions")
+        near = SceneCloud(cloud.points[inside], cloud.colors[inside], cloud.normals[inside])
+        sdf = build_scene_sdf(near, lo, hi, rc.voxel_m, rc.inflation_m, max_voxels=rc.max_voxels)
+        half = np.sqrt(3.0) / 2.0 * sdf.voxel
+        sdf = VoxelSDF(np.abs(sdf.values + half) - half, sdf.origin, sdf.voxel, sdf.inflation)
         sdf.save(out / "scene_sdf.npz")
         contacts = []
         for e in eps:
@@ -438,21 +475,14 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
                     log.warning("contact: %s: %s; using the grasp onset %d", d.name, c.message, onset)
             contacts.append(row)
         report = {"dataset": str(dataset), "episodes": eps, "frame": "world = UMI table-tag frame, z up, metres",
-                  "sfm": {"mode": sfm.mode, "frames": len(names), "registered": int(sfm.registered.sum()),
-                          "points3D": int(len(sfm.points)), "mean_reproj_error_px": sfm.mean_reproj_error_px,
-                          "timings_s": sfm.timings_s},
-                  "cloud": {"points": len(cloud)},
                   "sdf": {"lo": sdf.bounds[0].tolist(), "hi": sdf.bounds[1].tolist(), "voxel_m": sdf.voxel,
-                          "shape": list(sdf.shape)},
-                  "contacts": contacts, "timings_s": {}}
+                          "shape": list(sdf.shape), "points": int(inside.sum()), "signed": False},
+                  "contacts": contacts}
         atomic_write_text(out / "recon_report.json", json.dumps(report, indent=2, default=float) + "\n")
-        info = {k: report[k] for k in ("sfm", "cloud", "sdf")}
-        return ({"cloud": "scene_cloud.ply", "sdf": "scene_sdf.npz", "report": "recon_report.json"},
-                ["scene_cloud.ply", "scene_sdf.npz", "recon_report.json"], info)
+        return ({"sdf": "scene_sdf.npz", "report": "recon_report.json"}, ["scene_sdf.npz", "recon_report.json"],
+                {"sdf": report["sdf"], "contacts": contacts})
 
-    conf = {"recon": rc, "image_size": cfg.image_size, "sfm_stride": inp.sfm_stride, "up": up,
-            "tcp": inp.tcp_offset_m}
-    return run_stage("scene", work, conf, {"dataset": fp, "episodes": ",".join(map(str, eps))}, fn)
+    return run_stage("sdf", work, {"recon": rc, "crop": SDF_CROP_M}, {"scene": scene.key}, fn)
 
 
 def dataset_views(dataset: Path, demos: dict[int, _Demo], splice: dict[int, int], image_size: int,
@@ -572,12 +602,13 @@ def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg
         gd = {e: demos_all[e] for e in eps}
         try:
             scene = _stage_scene(gw, dataset, fp, eps, gd, fps, cfg, inp)
-            contact = _stage_contact(gw, scene, _Sess([gd[e] for e in eps]), dict(cfg.recon.contact_overrides),
+            sdf_st = _stage_sdf(gw, dataset, scene, eps, gd, fps, cfg)
+            contact = _stage_contact(gw, sdf_st, _Sess([gd[e] for e in eps]), dict(cfg.recon.contact_overrides),
                                      cfg.pregrasp_clearance_m)
             rows = json.loads(contact.path("contacts").read_text())
             for e, r in zip(eps, rows):
                 contact_idx[e] = r["splice_index"]
-            paths = {"sdf": str(scene.path("sdf")), "cloud": str(scene.path("cloud")), "dataset": str(dataset)}
+            paths = {"sdf": str(sdf_st.path("sdf")), "cloud": str(scene.path("cloud")), "dataset": str(dataset)}
             mask = np.zeros((cfg.image_size, cfg.image_size), bool)
             if renders:
                 splat = _stage_splat(gw, dataset, fp, gd, scene, contact, cfg, inp, progress)
@@ -588,7 +619,7 @@ def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg
                 mask, mask_info = np.load(gm.path("mask")), gm.info
                 stages[f"{g}/splat"] = splat
                 stages[f"{g}/gripper_mask"] = gm
-            stages[f"{g}/scene"], stages[f"{g}/contact"] = scene, contact
+            stages[f"{g}/scene"], stages[f"{g}/sdf"], stages[f"{g}/contact"] = scene, sdf_st, contact
         except UmiAugError as exc:
             raise AugmentError(f"scene group {g} (episodes {eps}): stage failed: {exc}") from exc
         if obs is not None:
@@ -632,7 +663,7 @@ def describe(assets: DatasetAssets) -> dict[str, Any]:
     for g in assets.group_paths:
         eps = sorted(e for e, gg in assets.group_of.items() if gg == g)
         row: dict[str, Any] = {"episodes": eps}
-        for k in ("scene", "contact", "splat"):
+        for k in ("scene", "sdf", "contact", "splat"):
             st = assets.stages.get(f"{g}/{k}")
             if st is not None:
                 row[k] = st.info

@@ -139,7 +139,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             self._plans.move_to_end(key)
             self.stats["plan_hits"] += 1
             return self._plans[key]
-        planned = plan_episode(self.assets, key[0], key[1], mode)
+        planned = plan_episode(self.assets.for_demo(key[0]), key[0], key[1], mode)
         self.stats["plans"] += 1
         self.stats["plan_failures"] += planned is None
         self._plans[key] = planned
@@ -148,7 +148,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         return planned
 
     def _episode_arrays(self, planned) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
-        ep = planned.episode.umi_episode()
+        ep = self.assets.umi_episode(planned.episode)
         pose6 = np.concatenate([ep["robot0_eef_pos"], ep["robot0_eef_rot_axis_angle"]], axis=1).astype(np.float64)
         return [pose6], [ep["robot0_gripper_width"].astype(np.float64)], [ep["robot0_demo_start_pose"]]
 
@@ -188,7 +188,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         uniq, inv = np.unique(rgb_rows, return_inverse=True)
         from umi_aug.augment import render_episode_frames
 
-        frames = render_episode_frames(self.assets, planned, uniq)[inv]
+        frames = render_episode_frames(self.assets.for_demo(planned.demo_index), planned, uniq)[inv]
         self.stats["frames_rendered"] += len(uniq)
         key = self.original.rgb_keys[0]
         return to_sample({key: frames}, {k: v[0] for k, v in lowdim.items()}, self.original.lowdim_keys)

@@ -151,6 +151,9 @@ class AugConfig:
     splat_max_gaussians: int = 60000
     #: planned episodes kept per DataLoader worker (LRU)
     plan_cache_size: int = 256
+    #: plain UMI dataset input (no session folder): UMI's camera→TCP ``tcp_offset`` (m) and episodes per scene
+    tcp_offset_m: float = 0.205
+    scene_group: int = 1
 
 
 @dataclass

@@ -52,18 +52,30 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
 
     a = cfg.aug
     session = Path(a.session_dir).absolute() if a.session_dir else dataset_path.parent
-    if not (session / "demos").is_dir():
+    plain = not a.session_dir and not (session / "demos").is_dir()  # a plain UMI dataset: scenes from its frames
+    if not plain and not (session / "demos").is_dir():
         raise PolicyError(f"aug={a.name}: {session} is not a UMI session folder (no demos/); set aug.session_dir to the "
-                          "session (demos/mapping, demos/demo_*, calibration/) or train an offline export "
-                          "(`umi-aug augment`) with aug=none")
-    work = Path(a.work_dir).absolute() if a.work_dir else session / "augment"
+                          "session (demos/mapping, demos/demo_*, calibration/), or leave it empty to build the scenes "
+                          "from the dataset's own frames")
+    if plain:
+        work = Path(a.work_dir).absolute() if a.work_dir else dataset_path.with_name(dataset_path.name + ".augment")
+    else:
+        work = Path(a.work_dir).absolute() if a.work_dir else session / "augment"
     modes = AUG_MODES[a.name]
     acfg = AugmentConfig(mode=modes[0] if len(modes) == 1 else "both", seed=a.seed,
                          cone_half_angle_deg=a.cone_half_angle_deg, cone_radius_m=a.cone_radius_m,
                          image_size=cfg.task.image_size,
                          splat=SplatStageConfig(iterations=a.splat_iterations, max_gaussians=a.splat_max_gaussians))
-    log.info("aug=%s: preparing session %s (cached in %s)", a.name, session, work)
-    assets = prepare_session(session, work, acfg)
+    if plain:
+        from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset
+
+        log.info("aug=%s: building the scenes of dataset %s from its own frames (cached in %s)", a.name,
+                 dataset_path, work)
+        assets = prepare_dataset(dataset_path, work, acfg, DatasetInput(tcp_offset_m=a.tcp_offset_m,
+                                                                        scene_group=a.scene_group))
+    else:
+        log.info("aug=%s: preparing session %s (cached in %s)", a.name, session, work)
+        assets = prepare_session(session, work, acfg)
     return AugmentedUmiDataset(train, assets, modes, ratio=a.ratio, n_aug_per_demo=a.n_aug_per_demo, seed=a.seed,
                                plan_cache_size=a.plan_cache_size)
 
