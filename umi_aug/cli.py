@@ -69,8 +69,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_validate(args: argparse.Namespace) -> int:
     from umi_aug.data import validate_replay_buffer
 
-    report = validate_replay_buffer(Path(args.path))
-    print(f"{args.path}: OK — {report.n_episodes} episodes, {report.n_steps} steps")
+    report = validate_replay_buffer(Path(args.path), deep=args.deep, progress=args.deep)
+    print(f"{args.path}: OK — {report.n_episodes} episodes, {report.n_steps} steps"
+          + (", every chunk decoded" if args.deep else ", chunk listing complete (--deep decodes every chunk)"))
     for key, info in report.keys.items():
         print(f"  {key}: {info}")
     for w in report.warnings:
@@ -108,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("validate", help="validate a UMI replay buffer (directory or .zarr.zip)")
     v.add_argument("path")
+    v.add_argument("--deep", action="store_true", help="decode every chunk (images included), with a progress bar")
     v.set_defaults(func=_cmd_validate)
 
     i = sub.add_parser("intrinsics", help="show a fisheye calibration (UMI JSON or ORB-SLAM3 yaml)")
@@ -147,6 +149,17 @@ def main(argv: list[str] | None = None) -> int:
     except UmiAugError as exc:
         print(f"umi-aug {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: one line, no traceback; outputs are resumable (see docs/robustness.md)
+        print(f"umi-aug {args.command}: interrupted (Ctrl-C); nothing half-written is kept — rerun the same "
+              f"command to resume", file=sys.stderr)
+        return 130
+    except OSError as exc:  # the environment (disk full, read-only, permissions): one line naming the path
+        if args.verbose:
+            raise
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"umi-aug {args.command}: error: {exc.strerror or exc}{where} (-v shows the traceback)",
+              file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

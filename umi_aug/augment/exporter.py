@@ -24,7 +24,6 @@ import json
 import logging
 import os
 import pickle
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -37,7 +36,8 @@ from umi_aug.augment.plan import MODE_CODES, PlannedEpisode, episode_seed, try_p
 from umi_aug.augment.render import render_episode_frames
 from umi_aug.augment.session_assets import OVERLAY_MASK_RULE, SessionAssets, prepare_session, session_fingerprint
 from umi_aug.errors import AugmentError, UmiAugError
-from umi_aug.io_utils import atomic_path, atomic_write_text
+from umi_aug.io_utils import (PathLock, atomic_path, atomic_write_text, check_free_space, is_inside,
+                               remove_tree_atomically, tree_size)
 
 __all__ = ["ExportSummary", "export", "export_jobs", "RECORD_KEYS", "read_episode_records", "summary_table"]
 
@@ -303,40 +303,115 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
     Returns:
         :class:`ExportSummary` (also ``<out>.summary.json``).
     Raises:
-        AugmentError: stage failures, an existing export of another configuration, mismatched dataset keys.
+        AugmentError: stage failures, an existing export of another configuration, mismatched dataset keys, an
+            input problem (checked before any compute), an output/work dir that is the input, another run holding
+            the output's or work dir's lock (its PID), too little free disk space, ``resume=False`` on a path
+            umi-aug did not write.
     """
+    out = Path(out_path)
+    work = Path(work_dir) if work_dir is not None else out.with_name(out.name + ".work")
+    _check_paths(Path(session_dir), out, work)
+    # one run per output and per work dir: a second run fails at once naming the holder's PID
+    with PathLock(out, "output", AugmentError), PathLock(work, "work dir", AugmentError, inside=True):
+        return _export(session_dir, out, work, cfg, resume=resume, progress=progress, pictures=pictures,
+                       dataset_input=dataset_input)
+
+
+def _check_paths(src: Path, out: Path, work: Path) -> None:
+    """Refuse an output / work dir that is, contains or lies inside the input (nothing is touched)."""
+    for what, p in (("--out", out), ("--out", _working_path(out)), ("--work", work)):
+        if is_inside(src, p) or (src.is_dir() and is_inside(p, src) and (
+                not (src / "demos").is_dir()  # a zarr directory dataset: nothing may be written inside it
+                or any(is_inside(p, src / sub) for sub in ("demos", "calibration", "dataset.zarr.zip")))):
+            raise AugmentError(f"{what} {p}: is, contains or lies inside the input {src}; umi-aug never writes "
+                               f"into or deletes its inputs: choose another {what}")
+
+
+def _is_own_export(p: Path, wpath: Path) -> bool:
+    """True when ``p`` is an umi-aug export (its root attribute ``umi_aug_export``), or umi-aug's working store
+    ``<out>.partial`` holding nothing but zarr groups (a half-deleted one)."""
+    from umi_aug.data.store import close_store, open_store
+
+    try:
+        store, root = open_store(p, mode="r")
+    except UmiAugError:
+        store = root = None
+    if root is not None:
+        try:
+            if ATTR in root.attrs:
+                return True
+        except (KeyError, ValueError, TypeError):
+            pass
+        finally:
+            close_store(store)
+    return p == wpath and p.is_dir() and {q.name for q in p.iterdir()} <= {".zgroup", ".zattrs", "data", "meta"}
+
+
+def _discard_previous(out: Path, wpath: Path) -> None:
+    """``--restart``: delete the previous export / working store — only when umi-aug wrote it."""
+    for p in dict.fromkeys([wpath, out]):
+        if not p.exists() and not p.is_symlink():
+            continue
+        if p.is_symlink() or not _is_own_export(p, wpath):
+            raise AugmentError(f"{p}: exists and is not an umi-aug export (no attribute '{ATTR}'); --restart "
+                               f"deletes only umi-aug's own outputs: move it away yourself or choose another "
+                               f"--out")
+        log.info("export: --restart removes the previous export %s", p)
+        remove_tree_atomically(p)
+
+
+def _expected_bytes(src: Path, n_jobs_max: int, n_src_eps: int, include_original: bool) -> int:
+    """About the bytes of the output: the input dataset's bytes per episode x the episodes written."""
+    per_ep = tree_size(src) / max(1, n_src_eps)
+    return int(per_ep * (n_jobs_max + (n_src_eps if include_original else 0)))
+
+
+def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: bool, progress: bool,
+            pictures: bool, dataset_input) -> ExportSummary:
     from tqdm import tqdm
 
     t_start = time.perf_counter()
-    out = Path(out_path)
-    work = Path(work_dir) if work_dir is not None else out.with_name(out.name + ".work")
     from umi_aug.augment import dataset_source as dsrc
+    from umi_aug.augment.preflight import check_session_inputs
 
     is_dataset = dsrc.is_dataset_path(session_dir)
     if is_dataset:  # checked before anything is removed or computed: one error naming the key/episode
         dataset_input = dataset_input or dsrc.DatasetInput()
         dsrc.check_dataset(session_dir, cfg.image_size, dataset_input)
         key = _run_key(cfg, config_hash(dsrc.dataset_fingerprint(session_dir), dataset_input))
+        src_ds = Path(session_dir)
+        n_src = _n_episodes(src_ds)
+        n_aug = len(dataset_input.episodes) if dataset_input.episodes is not None else n_src
     elif not Path(session_dir, "demos").is_dir():
         raise AugmentError(f"{session_dir}: neither a UMI session folder (no demos/) nor a UMI dataset "
                            f"(*.zarr.zip or a zarr directory with data/ and meta/)")
     else:
+        n_src = n_aug = check_session_inputs(session_dir).n_episodes  # every input, one pass, before compute
+        src_ds = Path(session_dir) / "dataset.zarr.zip"
         key = _run_key(cfg, session_fingerprint(Path(session_dir)))
     wpath = _working_path(out)
     if not resume:
-        for p in {wpath, out}:
-            if p.is_dir():
-                shutil.rmtree(p)
-            elif p.exists():
-                p.unlink()
+        _discard_previous(out, wpath)
     finished = False
-    for p in ([out] if out.name.endswith(".zip") and not wpath.exists() else [wpath]):
-        if p.exists():  # checked before any stage runs: a mismatch costs nothing
-            if _stored_key(p) != key:
-                raise AugmentError(f"{p}: an export of another configuration/session (attribute "
-                                   f"'{ATTR}.key' differs from this run's {key!r}); delete it, pass "
-                                   f"resume=False, or choose another --out")
-            finished = p == out and out.name.endswith(".zip")
+    if out.name.endswith(".zip") and out.exists():  # checked before any stage runs: a mismatch costs nothing
+        if _stored_key(out) != key:
+            raise AugmentError(f"{out}: an export of another configuration/session (attribute "
+                               f"'{ATTR}.key' differs from this run's {key!r}); delete it, pass "
+                               f"resume=False, or choose another --out")
+        finished = True
+        if wpath.exists():  # killed during the final clean-up: the output is complete, the working copy is left
+            log.warning("export: %s is complete; removing the leftover working store %s", out, wpath)
+            remove_tree_atomically(wpath)
+    elif wpath.exists() and _stored_key(wpath) != key:
+        raise AugmentError(f"{wpath}: an export of another configuration/session (attribute "
+                           f"'{ATTR}.key' differs from this run's {key!r}); delete it, pass "
+                           f"resume=False, or choose another --out")
+    if not finished:  # before minutes of compute: the output (and a .zip's working copy) must fit
+        need = _expected_bytes(src_ds, n_aug * len(cfg.modes) * cfg.n_per_demo, n_src, cfg.include_original)
+        need = need * (2 if out.name.endswith(".zip") else 1) - tree_size(wpath)
+        check_free_space(out, need, f"writing {out.name} (about {n_aug * len(cfg.modes) * cfg.n_per_demo} new "
+                         f"episodes{' + a .zarr.zip copy of the working store' if out.name.endswith('.zip') else ''})",
+                         AugmentError)
     if is_dataset:
         assets = dsrc.prepare_dataset(session_dir, work, cfg, dataset_input, progress=progress)
     else:
@@ -408,10 +483,23 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
         t0 = time.perf_counter()
         with ReplayBuffer.open(wpath) as final:
             final.save(out)
-        shutil.rmtree(wpath)
+        remove_tree_atomically(wpath)  # a kill here leaves <out>.partial.tmp-*, never a half-deleted .partial
         timings["write_s"] += time.perf_counter() - t0
     return _finish(out, work, assets, key, jobs, resumed, t_start, timings, frames_rendered, pictures, read_from=out,
                    loop_s=time.perf_counter() - t_start)
+
+
+def _n_episodes(path: Path) -> int:
+    """Episodes of a UMI dataset (``meta/episode_ends``, read raw)."""
+    from umi_aug.data.store import close_store, open_store
+
+    store, root = open_store(path, mode="r")
+    try:
+        return int(root["meta/episode_ends"].shape[0])
+    except (KeyError, ValueError) as exc:
+        raise AugmentError(f"{path}: no readable key 'meta/episode_ends' ({exc})") from exc
+    finally:
+        close_store(store)
 
 
 def _status_of(reason: str) -> str:

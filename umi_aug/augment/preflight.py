@@ -1,0 +1,117 @@
+"""Checks of every input of an ``augment`` run, in one pass, before any stage computes (issue #18).
+
+:func:`check_session_inputs` reads a UMI session's ``dataset.zarr.zip`` (readable zip, layout, NaN/Inf, complete
+image-chunk listing), cross-checks it with the demo folders (one episode per demo, episode length = the demo's CSV
+rows, gripper widths present) and loads the session through the session reader (CSVs: columns, monotonic
+timestamps, rows per video frame; the mapping CSV; the intrinsics at the frames' size). Each problem raises one
+:class:`~umi_aug.errors.AugmentError` naming the file, key, row and value; suspicious-but-legal intrinsics
+(principal point outside the image, large ``|k1|``, focal lengths far from a fisheye's) become warnings.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from umi_aug.errors import AugmentError, UmiAugError
+
+__all__ = ["InputCheck", "check_session_inputs", "intrinsics_warnings"]
+
+log = logging.getLogger(__name__)
+
+#: |k1| above this is unusual for a GoPro-like fisheye (UMI's 2.7k calibration: k1 ≈ 0.02).
+K1_WARN = 0.5
+
+
+@dataclass
+class InputCheck:
+    """What the checks found: episodes in the input dataset, its size (bytes), warnings (also logged)."""
+
+    n_episodes: int
+    dataset_bytes: int
+    warnings: list[str] = field(default_factory=list)
+
+
+def intrinsics_warnings(intr, source: str, frame_size: tuple[int, int] | None = None) -> list[str]:
+    """Warnings for suspicious-but-legal fisheye intrinsics (``intr``: :class:`FisheyeIntrinsics`, pixels)."""
+    out = []
+    if not (0 <= intr.cx < intr.width and 0 <= intr.cy < intr.height):
+        out.append(f"{source}: principal point (cx, cy) = ({intr.cx:.1f}, {intr.cy:.1f}) px lies outside the "
+                   f"{intr.width}x{intr.height} image")
+    if abs(intr.k[0]) > K1_WARN:
+        out.append(f"{source}: |k1| = {abs(intr.k[0]):.3g} > {K1_WARN} is unusual for a fisheye calibration")
+    if not 0.5 < intr.fx / intr.fy < 2.0:
+        out.append(f"{source}: fx / fy = {intr.fx / intr.fy:.3g} (fx {intr.fx:.1f}, fy {intr.fy:.1f} px): a wrong "
+                   f"focal length?")
+    # an equidistant fisheye of 120..220 degrees maps half the width to ~1 rad: fx ~ width / 2 .. width / 4
+    if not intr.width / 8 < intr.fx < intr.width:
+        out.append(f"{source}: fx = {intr.fx:.1f} px for a {intr.width} px wide fisheye image (expected about "
+                   f"{intr.width / 4:.0f}..{intr.width / 2:.0f} px): a wrong focal length or a calibration of "
+                   f"another resolution?")
+    if frame_size is not None and tuple(frame_size) != (intr.width, intr.height):
+        out.append(f"{source}: intrinsics are {intr.width}x{intr.height} but the frames are "
+                   f"{frame_size[0]}x{frame_size[1]}")
+    return out
+
+
+def _dataset_check(ds: Path) -> tuple[int, dict[int, np.ndarray], int]:
+    """Validate the session's dataset: (episodes, {episode: gripper widths}, bytes)."""
+    from umi_aug.data import ReplayBuffer
+
+    try:
+        with ReplayBuffer.open(ds) as buf:  # layout, NaN/Inf, complete chunk listing (umi_aug.data.validate)
+            if "robot0_gripper_width" not in buf:
+                raise AugmentError(f"{ds}: no key 'data/robot0_gripper_width' (the demos' gripper widths); "
+                                   f"keys: {buf.keys()}")
+            widths = {i: np.asarray(buf.get_episode(i, ["robot0_gripper_width"])["robot0_gripper_width"],
+                                    dtype=np.float64).reshape(-1) for i in range(buf.n_episodes)}
+            n = buf.n_episodes
+    except AugmentError:
+        raise
+    except UmiAugError as exc:
+        raise AugmentError(str(exc)) from exc
+    return n, widths, ds.stat().st_size
+
+
+def check_session_inputs(session_dir: str | os.PathLike) -> InputCheck:
+    """Check a UMI session folder before any stage runs (see the module doc). Returns an :class:`InputCheck`.
+
+    Raises:
+        AugmentError: the first problem, naming the file/key/row/value.
+    """
+    from umi_aug.recon.session_io import load_session
+
+    root = Path(session_dir)
+    ds = root / "dataset.zarr.zip"
+    if not ds.exists():
+        raise AugmentError(f"{root}: no dataset.zarr.zip (the original episodes); run UMI's "
+                           "07_generate_replay_buffer first")
+    n_eps, widths, nbytes = _dataset_check(ds)
+    try:
+        sess = load_session(root)  # CSVs (columns, monotonic timestamps, one row per frame), mapping, intrinsics
+    except UmiAugError as exc:
+        raise AugmentError(str(exc)) from exc
+    csvs = {"mapping": root / "demos" / "mapping" / "mapping_camera_trajectory.csv"}
+    csvs.update({d.name: root / "demos" / d.name / "camera_trajectory.csv" for d in sess.demos})
+    for seq in [sess.mapping, *sess.demos]:
+        if seq.T_world_cam is None:
+            raise AugmentError(f"{csvs[seq.name]}: missing (the camera trajectory of {seq.source}, from UMI's SLAM "
+                               f"step); every sequence needs its CSV")
+    names = [d.name for d in sess.demos]
+    if n_eps != len(names):
+        raise AugmentError(f"{ds}: {n_eps} episodes but {root / 'demos'} has {len(names)} demo folders "
+                           f"({', '.join(names) or 'none'}); the dataset must hold one episode per demo, in the "
+                           f"demo folders' sorted order")
+    for i, d in enumerate(sess.demos):
+        w = widths[i]
+        if len(w) != d.n_frames:
+            raise AugmentError(f"{ds}: episode {i} has {len(w)} steps but demo {d.name} has {d.n_frames} video "
+                               f"frames / CSV rows ({d.source}); the dataset belongs to another session or demo")
+    warnings = intrinsics_warnings(sess.intrinsics, f"{root}: intrinsics", None)
+    for w in warnings:
+        log.warning("%s", w)
+    return InputCheck(n_episodes=n_eps, dataset_bytes=nbytes, warnings=warnings)
