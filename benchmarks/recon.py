@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (session / "session.json").exists():
             t = time.perf_counter()
             make_session(session, 0, n_demos=1, scan_frames=a.scan_frames, benchmark_frames=0, progress=False,
-                         write_video=False, overwrite=True)
+                         overwrite=True)
             print(f"session rendered in {time.perf_counter() - t:.0f} s: {session}")
     gt = _gt_cloud(session)
     settings = [

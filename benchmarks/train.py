@@ -45,7 +45,7 @@ def _session(args) -> Path:
     from umi_aug.sim.session import make_session
 
     print(f"making the synthetic session in {path} ({args.scan_frames} scan frames, 1 demo) ...", flush=True)
-    make_session(path, seed=0, scan_frames=args.scan_frames, n_demos=1, benchmark_frames=0, write_video=False,
+    make_session(path, seed=0, scan_frames=args.scan_frames, n_demos=1, benchmark_frames=0,
                  progress=False)
     return path
 

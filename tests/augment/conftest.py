@@ -39,8 +39,7 @@ def aug_session(tmp_path_factory):
     from umi_aug.sim.session import make_session
 
     out = tmp_path_factory.mktemp("aug_session") / "session"
-    make_session(out, 0, n_demos=1, scan_frames=30, policy_size=SIZE, benchmark_frames=0, progress=False,
-                 write_video=False)
+    make_session(out, 0, n_demos=1, scan_frames=30, policy_size=SIZE, benchmark_frames=0, progress=False)
     return out
 
 

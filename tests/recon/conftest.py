@@ -21,8 +21,7 @@ def sim_session(tmp_path_factory):
     from umi_aug.sim.session import make_session
 
     out = tmp_path_factory.mktemp("recon_session") / "session"
-    make_session(out, 0, n_demos=1, scan_frames=SCAN_FRAMES, benchmark_frames=0, progress=False,
-                 write_video=False)
+    make_session(out, 0, n_demos=1, scan_frames=SCAN_FRAMES, benchmark_frames=0, progress=False)
     return out
 
 

@@ -68,10 +68,13 @@ def test_full_sfm_and_sim3_alignment(sim_session, tmp_path):
     from umi_aug.recon import SfmConfig, align_sfm_to_poses, load_session, run_sfm
     from umi_aug.recon.evaluate import pose_metrics
 
+    from umi_aug.recon.session_io import write_frames
+
     s = load_session(sim_session)
     m = s.mapping
-    names = [f"mapping/{p.name}" for p in m.image_paths]
-    r = run_sfm(m.image_paths, names, s.intrinsics, tmp_path / "w", SfmConfig(mode="full"))
+    paths = write_frames(m, range(len(m)), tmp_path / "frames")  # decoded from raw_video.mp4
+    names = [f"mapping/{p.name}" for p in paths]
+    r = run_sfm(paths, names, s.intrinsics, tmp_path / "w", SfmConfig(mode="full"))
     aligned, sim = align_sfm_to_poses(r, m.T_world_cam, m.valid)
     gt = np.load(sim_session / "ground_truth" / "mapping" / "trajectory.npz")["T_world_cam"]
     pm = pose_metrics(aligned.T_world_cam, gt, aligned.registered)

@@ -84,7 +84,7 @@ def read_camera_trajectory_csv(path: str | os.PathLike) -> CameraTrajectory:
 
     Raises:
         DatasetError (naming file, line and column): missing/renamed header columns, wrong field count,
-        unparsable numbers, booleans other than true/false, non-increasing frame_idx, non-finite
+        unparsable numbers, booleans other than true/false, non-increasing frame_idx or timestamp, non-finite
         timestamp, non-finite pose or quaternion norm outside [0.9, 1.1] on a tracked row.
     """
     from umi_aug.geometry import pos_quat_xyzw_to_pose
@@ -119,6 +119,9 @@ def read_camera_trajectory_csv(path: str | os.PathLike) -> CameraTrajectory:
             raise _fail(path, line_no, "frame_idx", f"frame_idx must increase: {fi} after {rows[-1][0]}")
         if not math.isfinite(ts):
             raise _fail(path, line_no, "timestamp", f"non-finite timestamp {ts}")
+        if rows and ts <= rows[-1][1]:
+            raise _fail(path, line_no, "timestamp", f"timestamps must increase: {ts!r} s after {rows[-1][1]!r} s "
+                        f"(frame_idx {fi} after {rows[-1][0]})")
         if not lost:
             for c, v in zip(POSE_COLUMNS, pose):
                 if not math.isfinite(v):

@@ -95,11 +95,12 @@ def _has_module(mod: str) -> bool:
 
 def _session(cfg: DemoConfig, say: Callable[[str], None]) -> tuple[Path, dict]:
     """The synthetic session (made, or reused when it exists for the same settings)."""
-    from umi_aug.sim.session import make_session
+    from umi_aug.sim.session import SESSION_LAYOUT, make_session
 
     session_dir = Path(cfg.out_dir) / "session"
     marker = Path(cfg.out_dir) / "session.settings.json"
-    settings = {"seed": cfg.seed, "scan_frames": cfg.scan_frames, "policy_size": cfg.policy_size, "n_demos": 1}
+    settings = {"seed": cfg.seed, "scan_frames": cfg.scan_frames, "policy_size": cfg.policy_size, "n_demos": 1,
+                "layout": SESSION_LAYOUT}  # a session of an older layout (images/ folders) is rendered again
     if (session_dir / "dataset.zarr.zip").is_file() and marker.is_file() \
             and json.loads(marker.read_text()) == settings:
         say(f"sim: reusing the synthetic session {session_dir}")

@@ -2,7 +2,8 @@
 
 ``reconstruct_session(session, out_dir)``:
 1. frames: the scan (every ``scan_stride``-th) and each demo's frames before the gripper first closes (every
-   ``demo_stride``-th; the objects have not moved yet), size-checked against the intrinsics;
+   ``demo_stride``-th; the objects have not moved yet), decoded from the session's videos at most ``frame_width``
+   wide (UMI's SLAM runs at 960x720) into ``frames/`` (removed after SfM);
 2. SfM (:mod:`umi_aug.recon.sfm`, ``full`` or ``known_poses`` with the session's SLAM poses), then the Sim(3)
    alignment into the table-tag frame (:mod:`umi_aug.recon.align`);
 3. point filtering (track length, reprojection error) and clean-up (:mod:`umi_aug.recon.cloud`) →
@@ -18,10 +19,12 @@ import json
 import logging
 import math
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from umi_aug.errors import ReconError
@@ -30,7 +33,7 @@ from umi_aug.recon import constants as C
 from umi_aug.recon.align import Sim3, align_sfm_to_poses
 from umi_aug.recon.cloud import SceneCloud, clean_cloud, write_ply
 from umi_aug.recon.contact import ContactResult, detect_contact
-from umi_aug.recon.session_io import SessionData, load_session
+from umi_aug.recon.session_io import SessionData, load_session, write_frames
 from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, reachable_region
 from umi_aug.recon.sfm import SfmConfig, SfmResult, feature_mask, run_sfm
 
@@ -46,6 +49,7 @@ class ReconConfig:
     Attributes:
         sfm: SfM settings (mode ``full`` or ``known_poses``).
         scan_stride / demo_stride: use every n-th scan / pre-contact demo frame.
+        frame_width: decode frames at most this wide for SfM (None = the videos' size; intrinsics scaled to match).
         include_demo_frames: add the demos' pre-closing frames to SfM.
         cone_half_angle_deg / cone_radius_m: the trajectory stage's start-pose cone (θ, r; None = the demo's
             start-to-contact distance) bounding the SDF region.
@@ -57,6 +61,7 @@ class ReconConfig:
     sfm: SfmConfig = field(default_factory=SfmConfig)
     scan_stride: int = 2
     demo_stride: int = 4
+    frame_width: int | None = 960
     include_demo_frames: bool = True
     cone_half_angle_deg: float = 45.0
     cone_radius_m: float | None = None
@@ -94,8 +99,9 @@ def first_close_index(width: np.ndarray | None, drop: float = C.GRASP_CLOSE_DROP
     return int(hit[0]) if len(hit) else None
 
 
-def _frames(sess: SessionData, cfg: ReconConfig):
+def _frames(sess: SessionData, cfg: ReconConfig, frames_dir: Path, size: tuple[int, int] | None):
     paths, names, T, valid, lengths, seq = [], [], [], [], [], []
+    shutil.rmtree(frames_dir, ignore_errors=True)
     jobs = [(sess.mapping, np.arange(0, len(sess.mapping), max(1, cfg.scan_stride)))]
     if cfg.include_demo_frames:
         for d in sess.demos:
@@ -106,9 +112,9 @@ def _frames(sess: SessionData, cfg: ReconConfig):
         if len(idx) == 0:
             continue
         lengths.append(len(idx))
+        paths.extend(write_frames(s, idx, frames_dir, size))
         for i in idx:
-            paths.append(s.image_paths[i])
-            names.append(f"{s.name}/{s.image_paths[i].name}")
+            names.append(f"{s.name}/{s.frame_name(i)}.png")
             seq.append((s.name, int(i)))
             T.append(s.T_world_cam[i] if s.T_world_cam is not None else np.eye(4))
             valid.append(bool(s.valid[i]) if s.T_world_cam is not None else False)
@@ -124,7 +130,8 @@ def reconstruct_session(session: str | os.PathLike | SessionData, out_dir: str |
         session: session folder or loaded :class:`SessionData`.
         out_dir: output folder.
         config: :class:`ReconConfig`.
-        gripper_mask: ``[H, W]`` bool gripper mask for feature extraction (default UMI's predefined mask).
+        gripper_mask: ``[H, W]`` bool gripper mask for feature extraction at the videos' size (default UMI's
+            predefined mask).
     Raises:
         ReconError: with the failing step and what to do.
     """
@@ -133,15 +140,21 @@ def reconstruct_session(session: str | os.PathLike | SessionData, out_dir: str |
     sess = session if isinstance(session, SessionData) else load_session(session)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths, names, T, valid, lengths, seq = _frames(sess, cfg)
+    intr, size = sess.intrinsics_at(cfg.frame_width)
+    if gripper_mask is not None and size is not None:
+        x0, y0, cw, ch = sess.intrinsics.crop_geometry(*size)
+        gm = np.asarray(gripper_mask, dtype=np.uint8)[y0:y0 + ch, x0:x0 + cw]
+        gripper_mask = cv2.resize(gm, size, interpolation=cv2.INTER_NEAREST) > 0
+    paths, names, T, valid, lengths, seq = _frames(sess, cfg, out / "frames", size)
     if cfg.sfm.mode == "known_poses" and valid.sum() < 2:
         raise ReconError(f"{sess.root}: mode 'known_poses' but the session's trajectory CSVs give "
                          f"{int(valid.sum())} tracked poses; run UMI's SLAM first or use mode 'full'")
     tm: dict[str, float] = {}
     t = time.perf_counter()
-    mask = feature_mask(sess.intrinsics, gripper_mask)
-    sfm = run_sfm(paths, names, sess.intrinsics, out / "colmap", cfg.sfm, sequence_lengths=lengths,
+    mask = feature_mask(intr, gripper_mask)
+    sfm = run_sfm(paths, names, intr, out / "colmap", cfg.sfm, sequence_lengths=lengths,
                   T_world_cam=T if valid.any() else None, pose_valid=valid, masks=mask)
+    shutil.rmtree(out / "frames", ignore_errors=True)
     tm["sfm"] = time.perf_counter() - t
     if cfg.sfm.mode == "full" and valid.sum() < 3:
         raise ReconError(f"{sess.root}: full SfM needs metric poses of >= 3 frames to fix scale "

@@ -28,8 +28,9 @@ def add_make_session_parser(sub: "argparse._SubParsersAction") -> argparse.Argum
                    help=f"frames of the mapping sweep (default {d.scan_frames})")
     p.add_argument("--width", type=int, default=d.width, help=f"render width (default {d.width})")
     p.add_argument("--height", type=int, default=d.height, help=f"render height (default {d.height})")
-    p.add_argument("--image-format", choices=("jpg", "png"), default=d.image_format)
-    p.add_argument("--no-video", action="store_true", help="skip raw_video.mp4")
+    p.add_argument("--video-crf", type=int, default=d.video_crf,
+                   help=f"libx264 quality of each raw_video.mp4, the frames' only copy (lower = better; default "
+                        f"{d.video_crf})")
     p.add_argument("--shadows", action="store_true", help="render shadows (much slower on CPU)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing non-empty --out")
     p.set_defaults(func=cmd_make_session)
@@ -46,7 +47,7 @@ def cmd_make_session(args: argparse.Namespace) -> int:
     console = Console()
     s = make_session(
         Path(args.out), seed=args.seed, n_demos=args.demos, scan_frames=args.scan_frames, width=args.width,
-        height=args.height, image_format=args.image_format, write_video=not args.no_video, shadows=args.shadows,
+        height=args.height, video_crf=args.video_crf, shadows=args.shadows,
         overwrite=args.overwrite,
     )
     t = Table(title=f"synthetic UMI session → {s['out_dir']}")

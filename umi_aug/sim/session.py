@@ -4,8 +4,8 @@
 (umi_stack.md §1), plus the ground truth a real session never has::
 
     <out>/
-      demos/mapping/            raw_video.mp4, images/NNNNNN.jpg, mapping_camera_trajectory.csv, tx_slam_tag.json
-      demos/demo_sim<seed>_<k>/ raw_video.mp4, images/NNNNNN.jpg, camera_trajectory.csv
+      demos/mapping/            raw_video.mp4, mapping_camera_trajectory.csv, tx_slam_tag.json
+      demos/demo_sim<seed>_<k>/ raw_video.mp4, camera_trajectory.csv
       calibration/              gopro_intrinsics_2_7k.json (UMI's), gopro_intrinsics_<W>x<H>.json (render size),
                                 policy_intrinsics_<S>x<S>.json (the zarr images)
       dataset.zarr.zip          UMI replay buffer of the demos (TCP via UMI's camera→TCP offset, 224² images
@@ -16,10 +16,12 @@
                                 valid_mask.png
       contact_sheet.png, session.json
 
-World frame = SLAM map = table-tag frame (tag id 13 at the origin, ``tx_slam_tag`` = identity); camera poses are
-exact (``state`` 2 = OK, never lost). The mapping "video" runs at ``scan_fps`` (default 59.94/4); demos at UMI's
-59.94 fps; every CSV row is one frame with ``timestamp = frame_idx / fps``. Same seed → same bytes for the CSVs,
-images and the zarr arrays (the zip container holds timestamps).
+As in a real session the frames exist only as ``raw_video.mp4`` (H.264 yuv420p, like the GoPro's files; no
+extracted ``images/``), read back by :mod:`umi_aug.recon.session_io`. World frame = SLAM map = table-tag frame (tag
+id 13 at the origin, ``tx_slam_tag`` = identity); camera poses are exact (``state`` 2 = OK, never lost). The mapping
+video runs at ``scan_fps`` (default 59.94/4); demos at UMI's 59.94 fps; every CSV row is one video frame with
+``timestamp = frame_idx / fps``. Same seed → same bytes for the CSVs, videos and the zarr arrays (the zip container
+holds timestamps).
 """
 
 from __future__ import annotations
@@ -41,7 +43,8 @@ from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.camera.umi_image import umi_policy_image
 from umi_aug.data import CameraTrajectory, ReplayBuffer, make_umi_episode, validate_replay_buffer, \
     write_camera_trajectory_csv
-from umi_aug.errors import SimError
+from umi_aug.data.video import DEFAULT_CRF, VideoWriter
+from umi_aug.errors import SimError, UmiAugError
 from umi_aug.geometry.umi import umi_T_cam_tcp
 from umi_aug.io_utils import atomic_path
 from umi_aug.sim.bench import benchmark_fisheye_render
@@ -52,10 +55,12 @@ from umi_aug.sim.scene import SCENE_FAR, SCENE_NEAR, build_tabletop_scene
 from umi_aug.sim.tabletop_state import TabletopState
 from umi_aug.sim.trajectories import UMI_FPS, DemoPlan, plan_demo, scan_trajectory
 
-__all__ = ["SessionConfig", "make_session", "load_ray_depth", "load_gripper_mask", "DEPTH_SCALE_M"]
+__all__ = ["SessionConfig", "make_session", "load_ray_depth", "load_gripper_mask", "DEPTH_SCALE_M", "SESSION_LAYOUT"]
 
 log = logging.getLogger(__name__)
 
+#: Version of the folder layout :func:`make_session` writes (2: UMI's real layout, videos only, no images/).
+SESSION_LAYOUT: int = 2
 #: Ground-truth ray depth is stored as uint16 in units of this many metres (0.1 mm; max 6.55 m).
 DEPTH_SCALE_M: float = 1e-4
 #: File name of the per-frame ground truth (ray depth, gripper mask) in ``ground_truth/<sequence>/``.
@@ -84,8 +89,8 @@ class SessionConfig:
         fps: demo frame rate (UMI: 59.94).
         policy_size: side of the square zarr images (UMI: 224).
         face_size: cube-face size for rendering (default: matched to the lens at ``width × height``).
-        image_format: ``"jpg"`` (quality ``jpeg_quality``) or ``"png"`` for the per-frame image folders.
-        write_video: also write ``raw_video.mp4`` per sequence (libx264, like the GoPro's files).
+        video_crf: libx264 constant rate factor of the ``raw_video.mp4`` files (the frames' only copy; lower =
+            better; default :data:`umi_aug.data.video.DEFAULT_CRF`, as close to the renders as JPEG quality 95).
         n_distractors: static distractor objects on the table.
         shadows: shadow mapping (much slower on CPU).
         benchmark_frames: frames of the 224² timing run reported in ``session.json`` (0: skip).
@@ -102,9 +107,7 @@ class SessionConfig:
     fps: float = UMI_FPS
     policy_size: int = 224
     face_size: int | None = None
-    image_format: str = "jpg"
-    jpeg_quality: int = 95
-    write_video: bool = True
+    video_crf: int = DEFAULT_CRF
     n_distractors: int = 4
     shadows: bool = False
     benchmark_frames: int = 30
@@ -119,8 +122,8 @@ class SessionConfig:
         if self.n_demos < 1 or self.scan_frames < 2:
             raise SimError(f"SessionConfig: need n_demos >= 1 and scan_frames >= 2, got {self.n_demos}, "
                            f"{self.scan_frames}")
-        if self.image_format not in ("jpg", "png"):
-            raise SimError(f"SessionConfig.image_format must be 'jpg' or 'png', got {self.image_format!r}")
+        if not 0 <= int(self.video_crf) <= 51:
+            raise SimError(f"SessionConfig.video_crf must be in [0, 51] (libx264), got {self.video_crf}")
         if not (self.fps > 0 and self.scan_fps > 0):
             raise SimError(f"SessionConfig: frame rates must be > 0, got fps={self.fps}, scan_fps={self.scan_fps}")
 
@@ -129,30 +132,6 @@ class SessionConfig:
 def _write_json(path: Path, obj: Any) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(obj, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-
-
-class _VideoWriter:
-    """Streaming H.264 mp4 writer (imageio-ffmpeg), single-threaded and bit-exact flags for reproducibility."""
-
-    def __init__(self, path: Path, width: int, height: int, fps: float) -> None:
-        try:
-            import imageio_ffmpeg
-        except ImportError as exc:  # pragma: no cover - part of the sim extra
-            raise SimError("writing raw_video.mp4 needs imageio-ffmpeg (pip install 'umi-aug[sim]'), or pass "
-                           "write_video=False") from exc
-        self._gen = imageio_ffmpeg.write_frames(
-            str(path), (width, height), fps=fps, codec="libx264", pix_fmt_in="rgb24", pix_fmt_out="yuv420p",
-            quality=None, macro_block_size=1, ffmpeg_log_level="error",
-            output_params=["-crf", "16", "-preset", "veryfast", "-threads", "1", "-map_metadata", "-1",
-                           "-fflags", "+bitexact", "-flags:v", "+bitexact"],
-        )
-        self._gen.send(None)
-
-    def write(self, rgb: np.ndarray) -> None:
-        self._gen.send(np.ascontiguousarray(rgb))
-
-    def close(self) -> None:
-        self._gen.close()
 
 
 def _trajectory_csv(path: Path, T_world_cam: np.ndarray, fps: float) -> None:
@@ -193,27 +172,24 @@ def _render_sequence(
 ) -> _Rendered:
     intr = renderer.intr
     n = len(T_world_cam)
-    img_dir = seq_dir / "images"
-    img_dir.mkdir(parents=True, exist_ok=True)
+    seq_dir.mkdir(parents=True, exist_ok=True)
     gt_dir.mkdir(parents=True, exist_ok=True)
     depth_q = np.zeros((n, intr.height, intr.width), dtype=np.uint16)
     grip = np.zeros((n, intr.height, intr.width), dtype=bool)
     policy = np.zeros((n, cfg.policy_size, cfg.policy_size, 3), dtype=np.uint8) if want_policy else None
-    video = _VideoWriter(seq_dir / "raw_video.mp4", intr.width, intr.height, fps) if cfg.write_video else None
+    try:
+        video = VideoWriter(seq_dir / "raw_video.mp4", intr.width, intr.height, fps, crf=cfg.video_crf)
+    except UmiAugError as exc:
+        raise SimError(f"{seq_dir / 'raw_video.mp4'}: {exc}") from exc
     thumbs: list[np.ndarray] = []
     depth_thumb = mask_thumb = None
-    ext = cfg.image_format
-    params = [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)] if ext == "jpg" else [cv2.IMWRITE_PNG_COMPRESSION, 3]
     t0 = time.perf_counter()
     try:
         for i in range(n):
             state.set(T_world_cam[i], float(widths[i]), None if T_world_mug is None else T_world_mug[i])
             fr = renderer.render(T_world_cam[i], state.data, rgb=True, depth=True, segmentation=True)
             rgb = fr.rgb
-            if not cv2.imwrite(str(img_dir / f"{i:06d}.{ext}"), rgb[..., ::-1], params):
-                raise SimError(f"could not write {img_dir / f'{i:06d}.{ext}'}")
-            if video is not None:
-                video.write(rgb)
+            video.write(rgb)
             q = np.rint(fr.ray_depth / DEPTH_SCALE_M)
             depth_q[i] = np.where(fr.depth_valid, np.clip(q, 1, 65535), 0).astype(np.uint16)
             grip[i] = state.gripper_mask(fr.geom_id)
@@ -228,8 +204,7 @@ def _render_sequence(
             if pbar is not None:
                 pbar.update(1)
     finally:
-        if video is not None:
-            video.close()
+        video.close()
     seconds = time.perf_counter() - t0
     _write_frames_gt(gt_dir / FRAMES_GT_NAME, depth_q, grip)
     log.debug("%s: %d frames in %.1f s", name, n, seconds)
@@ -462,6 +437,7 @@ def make_session(out_dir: str | os.PathLike, seed: int = 0, config: SessionConfi
             render_s = sum(seconds.values())
             summary = {
                 "seed": cfg.seed,
+                "layout": SESSION_LAYOUT,
                 "config": {k: (v if not isinstance(v, float) else float(v)) for k, v in asdict(cfg).items()},
                 "frame": "world = SLAM map = table-tag frame (tag 13 at origin), z up, metres",
                 "intrinsics": {"render": intr.to_dict(), "policy": intr_policy.to_dict()},

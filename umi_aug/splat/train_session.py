@@ -112,31 +112,26 @@ def session_views(
     contacts.update({k: int(v) for k, v in (contact or {}).items()})
     mask = loss_mask(intr, finger=mask_finger)
 
-    picks: list[tuple[str, Path, np.ndarray]] = []
     seqs = [(sess.mapping, len(sess.mapping), max(1, int(scan_stride)))]
     for d in sess.demos:
         if d.name not in contacts:
             log.info("%s: no contact frame known; its frames are not used for training", d.name)
             continue
         seqs.append((d, min(len(d), contacts[d.name] + 1), max(1, int(demo_stride))))
+    views = []
     for seq, n, stride in seqs:
         if seq.T_world_cam is None:
             log.warning("%s: no camera trajectory; skipped", seq.name)
             continue
-        for k in range(0, n, stride):
-            if seq.valid[k]:
-                picks.append((f"{seq.name}/{seq.image_paths[k].stem}", seq.image_paths[k], seq.T_world_cam[k]))
-    if not picks:
+        ks = [k for k in range(0, n, stride) if seq.valid[k]]  # SLAM-lost frames have no pose: skipped
+        try:  # one sequential decode per video, only these frames, at the training size
+            for k, img in seq.iter_frames(ks, size):
+                views.append(TrainView(f"{seq.name}/{seq.frame_name(k)}", np.array(img),
+                                       np.asarray(seq.T_world_cam[k], dtype=np.float64), mask.copy()))
+        except UmiAugError as exc:
+            raise SplatError(f"{root}: {exc}") from exc
+    if not views:
         raise SplatError(f"{root}: no tracked frames with poses to train on")
-    views = []
-    for name, path, T in picks:
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise SplatError(f"{path}: unreadable image")
-        img = np.ascontiguousarray(bgr[..., ::-1])
-        if size is not None:
-            img = resize_frame(img, intr0, *size)
-        views.append(TrainView(name, img, np.asarray(T, dtype=np.float64), mask.copy()))
     return views, intr
 
 

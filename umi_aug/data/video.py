@@ -1,0 +1,278 @@
+"""Video files of UMI sessions (``raw_video.mp4``): probe, selective decoding at a reduced size, an H.264 writer.
+
+UMI keeps only the GoPro's videos (2.7K, 59.94 fps; umi_stack.md §1); the stages need a subset of the frames at a
+fraction of that size. :func:`iter_video_frames` runs ONE sequential ffmpeg pass (the ``imageio-ffmpeg`` binary)
+that keeps only the requested frame indices (``select`` before any other filter, so only those frames are cropped,
+resized and converted) and stops after the last one: the full-size frames never leave ffmpeg.
+:func:`read_video_frames_reference` is the slow obviously-correct path (every frame decoded at full size with the
+plain reader, crop + ``cv2.INTER_AREA`` in numpy/OpenCV), kept for the tests.
+
+Frame indices are 0-based decode (presentation) order, the same ``frame_idx`` UMI's SLAM writes into
+``camera_trajectory.csv``. Resizing is the full-height centre crop of ``crop_geometry`` followed by an area resize,
+so the intrinsics of the result are ``FisheyeIntrinsics.scaled(w, h)``. Every problem raises
+:class:`umi_aug.errors.DatasetError` naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from umi_aug.errors import DatasetError
+
+__all__ = ["VideoInfo", "probe_video", "iter_video_frames", "read_video_frames", "read_video_frames_reference",
+           "select_expression", "VideoWriter", "centre_crop", "DEFAULT_CRF"]
+
+#: libx264 constant rate factor of :class:`VideoWriter` (lower = better). 8 keeps the synthetic session's frames
+#: at least as close to the renders as the JPEG-95 frames it used to write: PSNR against 40 rendered 320x240 scan
+#: frames: JPEG-95 35.99 dB; crf 16 34.86, 12 35.72, 10 36.00, 8 36.20 dB.
+DEFAULT_CRF: int = 8
+#: Longest ``select`` expression passed on the command line; longer index sets decode a superset (gcd stride).
+MAX_SELECT_EXPR: int = 60_000
+
+
+def _ffmpeg() -> str:
+    try:
+        import imageio_ffmpeg
+    except ImportError as exc:  # pragma: no cover - part of the sim/recon extras
+        raise DatasetError("reading/writing raw_video.mp4 needs imageio-ffmpeg (pip install 'umi-aug[recon]' or "
+                           "'umi-aug[sim]')") from exc
+    return imageio_ffmpeg.get_ffmpeg_exe()
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """First video stream of a file: ``width x height`` pixels, ``fps`` (average rate), ``n_frames`` (packets)."""
+
+    path: Path
+    width: int
+    height: int
+    fps: float
+    n_frames: int
+    codec: str
+
+
+_STREAM = re.compile(r"Stream #\d+:\d+.*?: Video: (\w+).*?, (\d{2,5})x(\d{2,5})")
+_FPS = re.compile(r"([\d.]+) fps")
+_FRAME = re.compile(r"frame=\s*(\d+)")
+
+
+def probe_video(path: str | os.PathLike) -> VideoInfo:
+    """Size, frame rate and frame count of ``path``'s first video stream (packets counted without decoding).
+
+    Raises:
+        DatasetError: missing file, not a video / no video stream, ffmpeg failure.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: video file not found")
+    cmd = [_ffmpeg(), "-hide_banner", "-nostdin", "-i", str(path), "-map", "0:v:0", "-c", "copy", "-f", "null", "-"]
+    res = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    err = res.stderr.decode(errors="replace")
+    m = _STREAM.search(err)
+    frames = _FRAME.findall(err)
+    if res.returncode != 0 or m is None or not frames:
+        tail = " | ".join(err.strip().splitlines()[-3:])
+        raise DatasetError(f"{path}: not a readable video (ffmpeg: {tail or 'no video stream'}); re-copy the "
+                           f"GoPro file or re-create the session")
+    line = err[m.start():].splitlines()[0]
+    f = _FPS.search(line)
+    return VideoInfo(path, int(m.group(2)), int(m.group(3)), float(f.group(1)) if f else float("nan"),
+                     int(frames[-1]), m.group(1))
+
+
+def centre_crop(width: int, height: int, out_width: int, out_height: int) -> tuple[int, int, int, int]:
+    """Full-height, horizontally centred crop with the output's aspect ratio (``FisheyeIntrinsics.crop_geometry``):
+    ``(x0, y0, crop_w, crop_h)``."""
+    crop_h = int(height)
+    crop_w = int(round(height * out_width / out_height))
+    return (int(width) - crop_w) // 2, 0, crop_w, crop_h
+
+
+def _check_indices(path: Path, indices: Sequence[int] | np.ndarray) -> np.ndarray:
+    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+    if len(idx) and (idx[0] < 0 or np.any(np.diff(idx) <= 0)):
+        raise DatasetError(f"{path}: frame indices must be non-negative and strictly increasing, got "
+                           f"{idx[:8].tolist()}{'...' if len(idx) > 8 else ''}")
+    return idx
+
+
+def select_expression(indices: np.ndarray) -> str:
+    """ffmpeg ``select`` expression true exactly on the (sorted, unique) frame numbers ``n`` in ``indices``:
+    one ``between(n,a,b)*not(mod(n-a,s))`` term per maximal arithmetic run."""
+    idx = [int(i) for i in indices]
+    terms, k = [], 0
+    while k < len(idx):
+        if k + 1 == len(idx):
+            terms.append(f"eq(n\\,{idx[k]})")
+            break
+        step = idx[k + 1] - idx[k]
+        j = k + 1
+        while j + 1 < len(idx) and idx[j + 1] - idx[j] == step:
+            j += 1
+        if j == k + 1 and step != 1:
+            terms.append(f"eq(n\\,{idx[k]})")
+            k += 1
+            continue
+        a, b = idx[k], idx[j]
+        terms.append(f"between(n\\,{a}\\,{b})" + (f"*not(mod(n-{a}\\,{step}))" if step > 1 else ""))
+        k = j + 1
+    return "+".join(terms) if terms else "0"
+
+
+def _resize_args(info: VideoInfo, size: tuple[int, int] | None) -> tuple[list[str], int, int]:
+    if size is None or tuple(size) == (info.width, info.height):
+        return [], info.width, info.height
+    w, h = int(size[0]), int(size[1])
+    x0, y0, cw, ch = centre_crop(info.width, info.height, w, h)
+    if x0 < 0 or w < 1 or h < 1:
+        raise DatasetError(f"{info.path}: cannot crop+resize the {info.width}x{info.height} frames to {w}x{h} "
+                           f"(wider aspect than the video)")
+    crop = [] if (cw, ch) == (info.width, info.height) else [f"crop={cw}:{ch}:{x0}:{y0}"]
+    return crop + ["format=rgb24", f"scale={w}:{h}:flags=area"], w, h
+
+
+def iter_video_frames(path: str | os.PathLike, indices: Sequence[int] | np.ndarray,
+                      size: tuple[int, int] | None = None, *, info: VideoInfo | None = None,
+                      threads: int = 2) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield ``(frame_index, rgb [h, w, 3] uint8)`` for the requested frames of ``path``, in order, from one
+    sequential decode that stops after the last requested frame.
+
+    Args:
+        path: the video.
+        indices: strictly increasing 0-based frame indices.
+        size: ``(w, h)`` output size (full-height centre crop to its aspect, area resize); None = native.
+        info: :func:`probe_video` result if already known.
+        threads: ffmpeg decoder threads.
+    Raises:
+        DatasetError: unreadable video, an index past the last frame, a decode that ends early (corrupt file).
+    """
+    path = Path(path)
+    idx = _check_indices(path, indices)
+    info = info or probe_video(path)
+    if len(idx) == 0:
+        return
+    if idx[-1] >= info.n_frames:
+        raise DatasetError(f"{path}: frame {int(idx[-1])} requested but the video has {info.n_frames} frames")
+    expr = select_expression(idx)
+    stride_filter = None
+    if len(expr) > MAX_SELECT_EXPR:  # irregular and huge: decode a gcd-strided superset, keep the rest in Python
+        g = int(np.gcd.reduce(np.diff(idx))) if len(idx) > 1 else 1
+        expr = select_expression(np.arange(idx[0], idx[-1] + 1, g))
+        stride_filter = set(idx.tolist())
+    filters, w, h = _resize_args(info, size)
+    vf = ",".join([f"select='{expr}'", *filters, "format=rgb24"])
+    n_out = len(idx) if stride_filter is None else len(range(idx[0], idx[-1] + 1, max(1, g)))
+    cmd = [_ffmpeg(), "-hide_banner", "-nostdin", "-loglevel", "error", "-threads", str(int(threads)),
+           "-i", str(path), "-map", "0:v:0", "-vf", vf, "-fps_mode", "passthrough", "-frames:v", str(n_out),
+           "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=w * h * 3)
+    nbytes = w * h * 3
+    got = 0
+    candidates = idx.tolist() if stride_filter is None else list(range(idx[0], idx[-1] + 1, max(1, g)))
+    try:
+        for k in candidates:
+            buf = proc.stdout.read(nbytes)
+            if len(buf) < nbytes:
+                break
+            got += 1
+            if stride_filter is not None and k not in stride_filter:
+                continue
+            yield k, np.frombuffer(buf, dtype=np.uint8).reshape(h, w, 3)
+    finally:
+        proc.stdout.close()
+        if got < n_out:
+            proc.kill()
+        proc.wait()
+        err = proc.stderr.read().decode(errors="replace").strip()
+        proc.stderr.close()
+    if got < n_out:
+        raise DatasetError(f"{path}: decoding stopped after {got} of {n_out} requested frames (first missing: "
+                           f"frame {candidates[got]}); the video is truncated or corrupt"
+                           + (f" (ffmpeg: {err.splitlines()[-1]})" if err else ""))
+
+
+def read_video_frames(path: str | os.PathLike, indices: Sequence[int] | np.ndarray,
+                      size: tuple[int, int] | None = None, *, progress: bool = False, threads: int = 2) -> np.ndarray:
+    """The frames of :func:`iter_video_frames` stacked: ``[K, h, w, 3]`` uint8 RGB."""
+    idx = _check_indices(Path(path), indices)
+    info = probe_video(path)
+    _, w, h = _resize_args(info, size)
+    out = np.empty((len(idx), h, w, 3), dtype=np.uint8)
+    it = iter_video_frames(path, idx, size, info=info, threads=threads)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, total=len(idx), desc=f"decode {Path(path).parent.name}/{Path(path).name}", unit="frame")
+    for j, (_, img) in enumerate(it):
+        out[j] = img
+    return out
+
+
+def read_video_frames_reference(path: str | os.PathLike, indices: Sequence[int] | np.ndarray,
+                                size: tuple[int, int] | None = None) -> np.ndarray:
+    """Reference (slow) path: decode EVERY frame at full size with ``imageio_ffmpeg.read_frames``, keep the
+    requested ones, then crop + ``cv2.resize(INTER_AREA)``. ``[K, h, w, 3]`` uint8 RGB."""
+    import cv2
+    import imageio_ffmpeg
+
+    path = Path(path)
+    idx = _check_indices(path, indices)
+    want = set(idx.tolist())
+    gen = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24")
+    meta = next(gen)
+    W, H = meta["size"]
+    frames = {}
+    for i, raw in enumerate(gen):
+        if i in want:
+            frames[i] = np.frombuffer(raw, dtype=np.uint8).reshape(H, W, 3)
+    missing = [i for i in idx.tolist() if i not in frames]
+    if missing:
+        raise DatasetError(f"{path}: frame {missing[0]} requested but the video has {i + 1} frames")
+    out = []
+    for i in idx.tolist():
+        img = frames[i]
+        if size is not None and tuple(size) != (W, H):
+            x0, y0, cw, ch = centre_crop(W, H, *size)
+            img = cv2.resize(img[y0:y0 + ch, x0:x0 + cw], tuple(int(s) for s in size), interpolation=cv2.INTER_AREA)
+        out.append(img)
+    return np.stack(out) if out else np.zeros((0, H, W, 3), np.uint8)
+
+
+class VideoWriter:
+    """Streaming H.264 (libx264, yuv420p like the GoPro's files) mp4 writer; single-threaded bit-exact flags, so the
+    same frames give the same bytes. ``crf``: constant rate factor (0 = lossless luma, 8 default)."""
+
+    def __init__(self, path: str | os.PathLike, width: int, height: int, fps: float, crf: int = DEFAULT_CRF) -> None:
+        try:
+            import imageio_ffmpeg
+        except ImportError as exc:  # pragma: no cover - part of the sim extra
+            raise DatasetError("writing raw_video.mp4 needs imageio-ffmpeg (pip install 'umi-aug[sim]')") from exc
+        self.path = Path(path)
+        self._gen = imageio_ffmpeg.write_frames(
+            str(self.path), (int(width), int(height)), fps=fps, codec="libx264", pix_fmt_in="rgb24",
+            pix_fmt_out="yuv420p", quality=None, macro_block_size=1, ffmpeg_log_level="error",
+            output_params=["-crf", str(int(crf)), "-preset", "veryfast", "-threads", "1", "-map_metadata", "-1",
+                           "-fflags", "+bitexact", "-flags:v", "+bitexact"],
+        )
+        self._gen.send(None)
+
+    def write(self, rgb: np.ndarray) -> None:
+        """Append one ``[H, W, 3]`` uint8 RGB frame."""
+        self._gen.send(np.ascontiguousarray(rgb))
+
+    def close(self) -> None:
+        """Finish the file."""
+        self._gen.close()
+
+    def __enter__(self) -> "VideoWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
