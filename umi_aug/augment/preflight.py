@@ -77,6 +77,12 @@ def _dataset_check(ds: Path) -> tuple[int, dict[int, np.ndarray], int]:
     return n, widths, ds.stat().st_size
 
 
+def _once(msg: str) -> str:
+    """``"a.csv: a.csv: line 5 ..."`` (a reader's message wrapped with its path again) → ``"a.csv: line 5 ..."``."""
+    head, sep, rest = msg.partition(": ")
+    return rest if sep and rest.startswith(head + ": ") else msg
+
+
 def check_session_inputs(session_dir: str | os.PathLike) -> InputCheck:
     """Check a UMI session folder before any stage runs (see the module doc). Returns an :class:`InputCheck`.
 
@@ -94,7 +100,7 @@ def check_session_inputs(session_dir: str | os.PathLike) -> InputCheck:
     try:
         sess = load_session(root)  # CSVs (columns, monotonic timestamps, one row per frame), mapping, intrinsics
     except UmiAugError as exc:
-        raise AugmentError(str(exc)) from exc
+        raise AugmentError(_once(str(exc))) from exc
     csvs = {"mapping": root / "demos" / "mapping" / "mapping_camera_trajectory.csv"}
     csvs.update({d.name: root / "demos" / d.name / "camera_trajectory.csv" for d in sess.demos})
     for seq in [sess.mapping, *sess.demos]:

@@ -147,6 +147,10 @@ def _stored_chunk_keys(arr: zarr.Array) -> set[str]:
     return {k[len(prefix):] for k in store.keys() if k.startswith(prefix)}
 
 
+def _plain(v) -> str:
+    return repr(v.item() if isinstance(v, np.generic) else v)
+
+
 def check_chunk_listing(key: str, arr: zarr.Array, name: str) -> None:
     """Raise when a chunk of ``data/<key>`` is missing from the store (the listing only; nothing is decoded)."""
     if arr.ndim == 0 or arr.shape[0] == 0:
@@ -158,7 +162,7 @@ def check_chunk_listing(key: str, arr: zarr.Array, name: str) -> None:
         row = int(missing[0].replace("/", ".").split(".")[0]) * arr.chunks[0]
         raise DatasetError(f"{name}: key 'data/{key}': {len(missing)} of {len(expected)} chunks missing, first "
                            f"'{missing[0]}' (rows {row}..{min(row + arr.chunks[0], arr.shape[0]) - 1}); they would "
-                           f"read as fill value {arr.fill_value!r} (black frames / zeros). The dataset is truncated or "
+                           f"read as fill value {_plain(arr.fill_value)} (black frames / zeros). The dataset is truncated or "
                            f"was copied incompletely: re-copy or re-create it")
 
 
