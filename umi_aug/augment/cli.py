@@ -33,7 +33,8 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
     p.add_argument("--workers", type=int, default=1, help="episodes planned/rendered in parallel")
     p.add_argument("--ray-address", default=None, help="existing Ray cluster (default: start a local one)")
     p.add_argument("--no-original", action="store_true", help="do not copy the original episodes")
-    p.add_argument("--restart", action="store_true", help="discard an interrupted export instead of resuming")
+    p.add_argument("--restart", action="store_true", help="discard a previous/interrupted export at --out instead of resuming (only one "
+                   "umi-aug wrote: inputs and other folders are refused)")
     p.add_argument("--no-pictures", action="store_true")
     g = p.add_argument_group("plain dataset input (a *.zarr.zip instead of a session folder)")
     g.add_argument("--episodes", default=None, metavar="A:B",
