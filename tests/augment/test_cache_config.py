@@ -36,8 +36,12 @@ def test_stage_runs_once_then_skips_and_reruns_on_change(tmp_path):
 
 
 def test_stage_without_manifest_keeps_partial_outputs(tmp_path):
-    (tmp_path / "s").mkdir()
-    (tmp_path / "s" / "partial.bin").write_text("resume me")
+    def interrupted(out):
+        (out / "partial.bin").write_text("resume me")
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):  # an interrupted run of the same key (its pending.json names it)
+        run_stage("s", tmp_path, {}, {}, interrupted)
 
     def fn(out):
         assert (out / "partial.bin").read_text() == "resume me"  # an interrupted run's files are kept

@@ -49,6 +49,22 @@ def test_restart_refuses_the_session_dataset_as_output(session, tmp_path, stop_b
     assert snapshot(session) == before
 
 
+@pytest.mark.parametrize("where", ["out in demos", "work = session"])
+def test_output_or_work_dir_inside_the_session_is_refused(session, tmp_path, stop_before_stages, where):
+    from umi_aug.errors import AugmentError
+
+    before = snapshot(session)
+    out, work, what, p = tmp_path / "o.zarr", session, "--work", session
+    if where == "out in demos":
+        out = p = session / "demos" / "x.zarr"
+        what = "--out"
+    with pytest.raises(AugmentError) as e:
+        stop_before_stages.export(session, out, small_cfg(), work_dir=work, progress=False)
+    assert str(e.value) == (f"{what} {p}: is, contains or lies inside the input {session}; umi-aug never writes "
+                            f"into or deletes its inputs: choose another {what}")
+    assert snapshot(session) == before and not out.exists()
+
+
 def test_restart_refuses_a_folder_umi_aug_did_not_write(session, tmp_path, stop_before_stages):
     from umi_aug.errors import AugmentError
 
