@@ -45,3 +45,7 @@ class AugmentError(UmiAugError, RuntimeError):
 
 class PolicyError(UmiAugError, ValueError):
     """Policy / training configuration or checkpoint problem."""
+
+
+class EvalError(UmiAugError, ValueError):
+    """Policy evaluation problem (configuration file, selection, results folder of another run)."""

@@ -1,0 +1,242 @@
+"""Policies the simulation harness drives, all behind one small interface (:class:`EvalPolicy`).
+
+Every policy turns the current environment state / observation into ONE 7-D OSC_POSE delta action of the square
+environment per 20 Hz control step (``[dx, dy, dz] / 0.05 m, axis-angle / 0.5 rad`` in the world frame, gripper
+``−1`` open … ``+1`` close; what :meth:`umi_aug.sim.square.env.SquareEnv.step` takes).
+
+* :class:`CheckpointEvalPolicy` — a trained Diffusion Policy (:class:`umi_aug.policy.Policy`). It outputs
+  ABSOLUTE TCP poses (UMI's action representation: position, rotation vector, gripper width). The environment keeps
+  the controller the demonstrations and the 1000 start configurations were recorded with (robosuite OSC_POSE,
+  delta input), so each absolute target is converted to the delta the scripted expert would command to reach it:
+  ``clip((p_target − p) / 0.05)``, ``clip(log(R_target Rᵀ) / 0.5)`` — the same P-law (gain 1) the expert's
+  demonstrations were generated with. Switching the env to absolute OSC (DP's ``abs_action``) would change the
+  controller the configurations and the demonstrations were made with. The gripper width target becomes the sign
+  the Panda gripper integrates: close when the target is narrower than the current width by more than
+  ``gripper_deadband_m``, open when wider, 0 (keep the current command) otherwise.
+* :class:`ExpertEvalPolicy` — the privileged-state scripted expert (needs no images: nothing is rendered).
+* :class:`ReplayEvalPolicy` — replays recorded actions open loop (control: must succeed from the recording's state).
+* :class:`HoldStillEvalPolicy`, :class:`RandomEvalPolicy` — controls that must never succeed.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from typing import Any, Protocol, Sequence
+
+import numpy as np
+
+from umi_aug.errors import PolicyError
+from umi_aug.geometry import pos_rotvec_to_pose, so3_log
+from umi_aug.sim.square.expert import POS_SCALE_M, ROT_SCALE_RAD, ExpertConfig, SquareExpert
+
+__all__ = ["EvalPolicy", "ExpertEvalPolicy", "HoldStillEvalPolicy", "RandomEvalPolicy", "ReplayEvalPolicy",
+           "CheckpointEvalPolicy", "abs_tcp_to_osc_delta", "POLICY_KINDS"]
+
+#: values of ``policy=`` in ``configs/eval_sim.yaml``
+POLICY_KINDS: tuple[str, ...] = ("checkpoint", "expert", "replay", "hold", "random")
+
+
+class EvalPolicy(Protocol):
+    """What the harness needs from a policy.
+
+    Attributes:
+        name: short label for reports.
+        image_size: fisheye image size the policy observes (pixels), or ``None`` = no images (nothing rendered).
+    """
+
+    name: str
+    image_size: int | None
+
+    def reset(self, env: Any, config: int, seed: int) -> None:
+        """Start a rollout of configuration ``config``; ``seed`` fixes all of the policy's randomness."""
+
+    def act(self, env: Any, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """OSC_POSE delta action ``[7]`` for the current step (``obs``: env observation, + ``camera0_rgb`` when
+        ``image_size`` is set)."""
+
+
+def abs_tcp_to_osc_delta(T_world_tcp: np.ndarray, width: float, target: np.ndarray,
+                         gripper_deadband_m: float = 0.002, pos_gain: float = 1.0, rot_gain: float = 1.0
+                         ) -> np.ndarray:
+    """An absolute TCP target → OSC_POSE delta action of the square env (the expert's P-law).
+
+    Args:
+        T_world_tcp: np.ndarray,  # [4, 4] current TCP pose (grip site, OpenCV camera axes), metres
+        width: current finger separation, metres.
+        target: np.ndarray,  # [7] absolute target: position (m), rotation vector (rad), gripper width (m)
+        gripper_deadband_m: |target − current width| below this keeps the gripper command (0).
+    Returns:
+        action: np.ndarray,  # [7] in [−1, 1]: world position delta / 0.05 m, world axis-angle delta / 0.5 rad,
+                             # gripper sign (+1 close, −1 open, 0 keep)
+    """
+    t = np.asarray(target, dtype=np.float64)
+    if t.shape != (7,) or not np.isfinite(t).all():
+        raise PolicyError(f"abs_tcp_to_osc_delta: target must be finite [7], got {t.shape} {t}")
+    T_t = pos_rotvec_to_pose(t[:6])
+    dp = (T_t[:3, 3] - T_world_tcp[:3, 3]) * pos_gain / POS_SCALE_M
+    dr = so3_log(T_t[:3, :3] @ T_world_tcp[:3, :3].T) * rot_gain / ROT_SCALE_RAD
+    dg = float(width) - float(t[6])  # > 0: target narrower → close
+    g = 0.0 if abs(dg) <= gripper_deadband_m else float(np.sign(dg))
+    return np.concatenate([np.clip(dp, -1, 1), np.clip(dr, -1, 1), [g]])
+
+
+class ExpertEvalPolicy:
+    """The scripted privileged-state expert (:class:`~umi_aug.sim.square.expert.SquareExpert`)."""
+
+    name = "expert"
+    image_size = None
+
+    def __init__(self, cfg: ExpertConfig | None = None) -> None:
+        self.expert = SquareExpert(cfg)
+
+    def reset(self, env: Any, config: int, seed: int) -> None:
+        self.expert.reset()
+
+    def act(self, env: Any, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return self.expert.act(env)
+
+    def info(self) -> dict[str, Any]:
+        """Final expert phase (for failure analysis)."""
+        return {"expert_phase": self.expert.phase}
+
+
+class HoldStillEvalPolicy:
+    """Zero motion, gripper open: the arm holds its start pose (a control that must never succeed)."""
+
+    name = "hold"
+    image_size = None
+
+    def reset(self, env: Any, config: int, seed: int) -> None:
+        pass
+
+    def act(self, env: Any, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0])
+
+
+class RandomEvalPolicy:
+    """Uniform random actions in ``[−scale, scale]⁷`` from a generator seeded per rollout (a control)."""
+
+    name = "random"
+    image_size = None
+
+    def __init__(self, scale: float = 1.0) -> None:
+        self.scale = float(scale)
+        self.rng = np.random.default_rng(0)
+
+    def reset(self, env: Any, config: int, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, env: Any, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return self.rng.uniform(-self.scale, self.scale, 7)
+
+
+class ReplayEvalPolicy:
+    """Replays recorded OSC actions open loop; configuration ``i`` replays ``actions[i]`` (then holds still).
+
+    Args:
+        actions: per configuration, float [T_i, 7] recorded actions.
+    """
+
+    name = "replay"
+    image_size = None
+
+    def __init__(self, actions: Sequence[np.ndarray]) -> None:
+        self.actions = [np.asarray(a, dtype=np.float64) for a in actions]
+        for i, a in enumerate(self.actions):
+            if a.ndim != 2 or a.shape[1] != 7 or not np.isfinite(a).all():
+                raise PolicyError(f"ReplayEvalPolicy: actions[{i}] must be finite [T, 7], got {a.shape}")
+        self._cur: np.ndarray = np.zeros((0, 7))
+        self._t = 0
+
+    def reset(self, env: Any, config: int, seed: int) -> None:
+        if not 0 <= config < len(self.actions):
+            raise PolicyError(f"ReplayEvalPolicy: no recorded episode for configuration {config} "
+                              f"({len(self.actions)} recorded)")
+        self._cur, self._t = self.actions[config], 0
+
+    def act(self, env: Any, obs: dict[str, np.ndarray]) -> np.ndarray:
+        a = self._cur[self._t] if self._t < len(self._cur) else HoldStillEvalPolicy().act(env, obs)
+        self._t += 1
+        return a
+
+
+class CheckpointEvalPolicy:
+    """A trained checkpoint run closed loop: observation history → action chunk → per-step OSC deltas.
+
+    At a step with no queued targets it calls :meth:`umi_aug.policy.Policy.predict_action` on the last ``To``
+    observations (spaced ``obs_down_sample_steps`` apart, oldest first; the first step is padded by repetition as in
+    training), takes the chunk's targets ``1 … n_action_steps`` (target 0 is the current pose: UMI's action window
+    starts at the current step) and executes them one per control step (each held for ``obs_down_sample_steps``
+    steps), converted by :func:`abs_tcp_to_osc_delta`. Sampling noise comes from a ``torch.Generator`` seeded with
+    the rollout seed, so a rollout is a deterministic function of (checkpoint, configuration, seed).
+
+    Args:
+        policy: a :class:`umi_aug.policy.Policy` (:meth:`from_checkpoint` loads one from a training checkpoint).
+        n_action_steps: executed targets per inference (default: the policy's ``policy.n_action_steps``).
+        gripper_deadband_m: see :func:`abs_tcp_to_osc_delta`.
+    """
+
+    name = "checkpoint"
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike, device: str = "cpu", n_action_steps: int | None = None,
+                        gripper_deadband_m: float = 0.002) -> "CheckpointEvalPolicy":
+        """Load a training checkpoint (``umi_aug.policy.checkpoint``; EMA weights when present).
+
+        Raises:
+            PolicyError: unreadable/malformed checkpoint, or one that does not fit the square env (names the file).
+        """
+        from umi_aug.policy import Policy
+
+        try:
+            return cls(Policy.from_checkpoint(path, device=device), n_action_steps, gripper_deadband_m)
+        except PolicyError as exc:
+            msg = str(exc)
+            raise PolicyError(msg if str(path) in msg else f"checkpoint {path}: {msg}") from exc
+
+    def __init__(self, policy: Any, n_action_steps: int | None = None, gripper_deadband_m: float = 0.002) -> None:
+        self.policy = policy
+        task = self.policy.task
+        if task.n_robots != 1 or task.n_cameras != 1:
+            raise PolicyError(f"the square env has one arm and one camera; the policy expects "
+                              f"n_robots={task.n_robots}, n_cameras={task.n_cameras}")
+        self.image_size: int | None = int(task.image_size)
+        self.down = int(task.obs_down_sample_steps)
+        self.To = max(int(task.img_obs_horizon), int(task.low_dim_obs_horizon))
+        n = int(n_action_steps or self.policy.n_action_steps)
+        if not 1 <= n <= task.action_horizon - 1:
+            raise PolicyError(f"n_action_steps={n} must be in [1, {task.action_horizon - 1}] (target 0 is the "
+                              f"current pose)")
+        self.n_exec = n
+        self.deadband = float(gripper_deadband_m)
+        self._hist: deque = deque(maxlen=(self.To - 1) * self.down + 1)
+        self._queue: list[np.ndarray] = []
+        self._gen = None
+        self.n_inferences = 0
+
+    def reset(self, env: Any, config: int, seed: int) -> None:
+        import torch
+
+        self.policy.reset()
+        self._hist.clear()
+        self._queue = []
+        self._gen = torch.Generator().manual_seed(int(seed))
+
+    def _obs_dict(self) -> dict[str, np.ndarray]:
+        h = list(self._hist)
+        idx = [max(0, len(h) - 1 - k * self.down) for k in range(self.To)][::-1]
+        rows = [h[i] for i in idx]
+        return {k: np.stack([r[k] for r in rows]) for k in rows[0]}
+
+    def act(self, env: Any, obs: dict[str, np.ndarray]) -> np.ndarray:
+        self._hist.append({"robot0_eef_pos": np.asarray(obs["robot0_eef_pos"], np.float64),
+                           "robot0_eef_rot_axis_angle": np.asarray(obs["robot0_eef_rot_axis_angle"], np.float64),
+                           "robot0_gripper_width": np.asarray(obs["robot0_gripper_width"], np.float64).reshape(1),
+                           "camera0_rgb": obs["camera0_rgb"]})
+        if not self._queue:
+            chunk = self.policy.predict_action(self._obs_dict(), n_steps=self.n_exec + 1, generator=self._gen)
+            self.n_inferences += 1
+            self._queue = [row for row in chunk[1:] for _ in range(self.down)]
+        target = self._queue.pop(0)
+        return abs_tcp_to_osc_delta(env.tcp_pose(), env.gripper_width(), target, self.deadband)

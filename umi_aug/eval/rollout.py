@@ -1,0 +1,278 @@
+"""One evaluation rollout of the square task from a stored start configuration, with its record.
+
+Per control step (20 Hz): observe (low-dim always; the fisheye wrist image only when the policy has an
+``image_size``) → ``policy.act`` → ``env.step``. Time is split into ``sim`` (``env.step`` incl. robosuite's
+observation), ``render`` (fisheye wrist image), ``policy`` (``act``, incl. inference) and ``other`` (sub-goal and
+contact checks, reset). Recorded (all world frame, metres):
+
+* ``success`` — robosuite's task success (nut on the square peg AND gripper ≥ ~4 cm away) at ANY step, as
+  Diffusion Policy scores it (max reward over the episode); ``steps_to_success`` = first such step (1-based);
+* ``pregrasp_reached`` — the grip site came within :data:`PREGRASP_POS_TOL_M` and :data:`PREGRASP_ROT_TOL_DEG`
+  of the configuration's expert pre-grasp pose (:func:`expert_pregrasp_pose`: the scripted expert's ``approach``
+  goal — hover point above the handle, z down, fingers closing across the handle — computed from the nut as it
+  lies, i.e. after it settled from its spawn height, until a finger first touches the nut; rotation error taken
+  modulo the gripper's 180° symmetry about its approach axis);
+* ``lifted`` — the nut was at least :data:`LIFT_HEIGHT_M` above its resting height (before first touched) while a
+  finger touched it;
+* ``inserted`` — the nut was on the square peg (robosuite's ``on_peg``: xy within 3 cm, below table + 5 cm),
+  released or not;
+* ``collision_table`` / ``collision_peg`` — any gripper (hand or finger) geom in contact with the table /
+  either peg; counted in steps.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from umi_aug.geometry import so3_log
+from umi_aug.sim.square.expert import ExpertConfig
+
+__all__ = ["PREGRASP_POS_TOL_M", "PREGRASP_ROT_TOL_DEG", "LIFT_HEIGHT_M", "expert_pregrasp_pose",
+           "SceneProbe", "rollout_config", "VideoSpec"]
+
+#: pre-grasp sub-goal tolerance: grip-site position error (m) …
+PREGRASP_POS_TOL_M: float = 0.02
+#: … and rotation error (deg, modulo the 180° gripper symmetry)
+PREGRASP_ROT_TOL_DEG: float = 15.0
+#: nut lift sub-goal: nut centre this far above its start height (m) with a finger touching it
+LIFT_HEIGHT_M: float = 0.03
+
+
+def expert_pregrasp_pose(T_world_nut: np.ndarray, table_z: float, cfg: ExpertConfig | None = None) -> np.ndarray:
+    """The scripted expert's pre-grasp grip-site pose for a nut pose (its ``approach`` goal).
+
+    Args:
+        T_world_nut: np.ndarray,  # [4, 4] nut body pose
+        table_z: table-top height, metres.
+    Returns:
+        T_world_site: np.ndarray,  # [4, 4]: hover point ``hover_height`` above the handle point
+                                   # (``grasp_offset`` along nut x), z axis down, x along nut y
+    """
+    cfg = cfg or ExpertConfig()
+    handle = T_world_nut[:3, 3] + cfg.grasp_offset * T_world_nut[:3, 0]
+    p = handle + np.array([0.0, 0.0, cfg.hover_height])
+    p[2] = max(p[2], table_z + cfg.grasp_height + cfg.hover_height)
+    z = np.array([0.0, 0.0, -1.0])
+    x = T_world_nut[:3, 1] - z * float(T_world_nut[:3, 1] @ z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = p
+    return T
+
+
+def _pregrasp_error(T_site: np.ndarray, T_goal: np.ndarray) -> tuple[float, float]:
+    """(position error m, rotation error rad modulo a half turn about the goal's z)."""
+    dp = float(np.linalg.norm(T_site[:3, 3] - T_goal[:3, 3]))
+    flip = np.diag([-1.0, -1.0, 1.0])
+    dr = min(float(np.linalg.norm(so3_log(T_goal[:3, :3] @ F @ T_site[:3, :3].T))) for F in (np.eye(3), flip))
+    return dp, dr
+
+
+class SceneProbe:
+    """Geom/body ids of the square scene for sub-goal and contact checks (built once per environment)."""
+
+    def __init__(self, env: Any) -> None:
+        import mujoco
+
+        from umi_aug.sim.square.env import GRIP_SITE, NUT_BODY
+
+        m = env.model
+        self.env = env
+        self.nut_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, NUT_BODY)
+        self.grip_site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, GRIP_SITE)
+        names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or "" for g in range(m.ngeom)]
+        bnames = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(b)) or "" for b in m.geom_bodyid]
+        self.gripper = np.array([n.startswith("gripper0_") or b.startswith("gripper0_")
+                                 for n, b in zip(names, bnames)])
+        self.fingers = np.array([("finger" in n or "finger" in b) and g for n, b, g in
+                                 zip(names, bnames, self.gripper)])
+        self.table = np.array(["table" in n and not n.startswith("gripper0_") for n in names])
+        self.peg = np.array([b in ("peg1", "peg2") for b in bnames])
+        self.nut = np.array([b.startswith("SquareNut") for b in bnames])
+        self.table_z = float(env.rs.table_offset[2])
+
+    def contacts(self) -> tuple[bool, bool, bool]:
+        """(gripper–table, gripper–peg, finger–nut) contact in the current state."""
+        d = self.env.data
+        n = int(d.ncon)
+        if n == 0:
+            return False, False, False
+        g1 = np.asarray(d.contact.geom1[:n])
+        g2 = np.asarray(d.contact.geom2[:n])
+        gg1, gg2 = self.gripper[g1], self.gripper[g2]
+        table = bool(np.any((gg1 & self.table[g2]) | (gg2 & self.table[g1])))
+        peg = bool(np.any((gg1 & self.peg[g2]) | (gg2 & self.peg[g1])))
+        nut = bool(np.any((self.fingers[g1] & self.nut[g2]) | (self.fingers[g2] & self.nut[g1])))
+        return table, peg, nut
+
+    def nut_pose(self) -> np.ndarray:
+        d = self.env.data
+        T = np.eye(4)
+        T[:3, :3] = np.asarray(d.xmat[self.nut_body]).reshape(3, 3)
+        T[:3, 3] = d.xpos[self.nut_body]
+        return T
+
+    def site_pose(self) -> np.ndarray:
+        d = self.env.data
+        T = np.eye(4)
+        T[:3, :3] = np.asarray(d.site_xmat[self.grip_site]).reshape(3, 3)
+        T[:3, 3] = d.site_xpos[self.grip_site]
+        return T
+
+    def on_peg(self) -> bool:
+        return bool(self.env.rs.on_peg(self.nut_pose()[:3, 3], 0))
+
+
+@dataclass
+class VideoSpec:
+    """Videos of one rollout: ``wrist`` fisheye and ``external`` pinhole (fixed scene camera) mp4 paths."""
+
+    wrist_path: str
+    external_path: str
+    size: int = 224
+    every: int = 2  # write every n-th control step (20 Hz / 2 = 10 fps, as DP's runner)
+
+
+class _Videos:
+    def __init__(self, env: Any, spec: VideoSpec, camera_factory) -> None:
+        from umi_aug.data.video import VideoWriter
+        from umi_aug.sim.raster import PinholeRasterizer, RasterOptions
+
+        self.spec = spec
+        self.env = env
+        self.wrist = camera_factory(spec.size)
+        self.ext = PinholeRasterizer(env.model, spec.size, RasterOptions(near=0.01, far=10.0))
+        fps = 20.0 / spec.every
+        self.w_wrist = VideoWriter(spec.wrist_path, spec.size, spec.size, fps)
+        self.w_ext = VideoWriter(spec.external_path, spec.size, spec.size, fps)
+        # a fixed camera 1.0 m in front of / 0.6 m above the table centre looking at it (OpenCV axes)
+        tz = float(env.rs.table_offset[2])
+        eye = np.array([1.0, 0.0, tz + 0.6])
+        target = np.array([-0.05, 0.1, tz + 0.05])
+        z = (target - eye) / np.linalg.norm(target - eye)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        self.T_ext = np.eye(4)
+        self.T_ext[:3, :3] = np.stack([x, y, z], axis=1)
+        self.T_ext[:3, 3] = eye
+
+    def frame(self, t: int) -> None:
+        if t % self.spec.every:
+            return
+        self.w_wrist.write(self.wrist.render(self.env.data, self.env.wrist_pose()))
+        self.ext.update_scene(self.env.data, self.T_ext)
+        rgb, _ = self.ext.render(self.T_ext, 55.0, rgb=True, depth=False)
+        self.w_ext.write(rgb)
+
+    def close(self) -> None:
+        self.w_wrist.close()
+        self.w_ext.close()
+        self.ext.close()
+
+
+def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, config: int, seed: int,
+                   horizon: int = 400, camera=None, stop_on_success: bool = True,
+                   video: VideoSpec | None = None, camera_factory=None) -> dict[str, Any]:
+    """Run ``policy`` from the flattened MuJoCo ``state`` for up to ``horizon`` control steps.
+
+    The environment is first reset (fixed seed 0: clears the gripper's integrated command and the controller, so a
+    rollout never depends on the previous one), then the stored state is restored.
+
+    Args:
+        env: :class:`~umi_aug.sim.square.env.SquareEnv` created with ``image_size=None`` (step renders nothing).
+        probe: :class:`SceneProbe` of ``env``.
+        policy: an :class:`~umi_aug.eval.policies.EvalPolicy`.
+        state: float64 [45] robomimic flattened state of the start configuration.
+        config, seed: configuration index and rollout seed (given to ``policy.reset``).
+        camera: :class:`~umi_aug.sim.square.camera.WristFisheyeCamera` at the policy's image size (needed iff
+            ``policy.image_size``).
+        stop_on_success: end at the first successful step (robomimic's ``terminate_on_success``; the score —
+            success at any step — is the same as running on).
+        video: write videos of this rollout.
+    Returns:
+        JSON-able record (see module docstring).
+    """
+    t_start = time.perf_counter()
+    tm = {"sim": 0.0, "render": 0.0, "policy": 0.0, "other": 0.0}
+    env.reset(seed=0)
+    obs = env.reset_to(state)
+    policy.reset(env, config, seed)
+    nut_rest = probe.nut_pose()
+    T_pre = expert_pregrasp_pose(nut_rest, probe.table_z)
+    rec: dict[str, Any] = {
+        "config": int(config), "seed": int(seed), "success": False, "steps_to_success": None,
+        "pregrasp_reached": False, "pregrasp_step": None, "pregrasp_min_pos_err_m": math.inf,
+        "pregrasp_min_rot_err_deg": math.inf, "lifted": False, "lifted_step": None, "max_nut_rise_m": 0.0,
+        "inserted": False, "inserted_step": None, "collision_table": False, "collision_table_steps": 0,
+        "collision_peg": False, "collision_peg_steps": 0,
+    }
+    videos = _Videos(env, video, camera_factory) if video is not None else None
+    tm["other"] += time.perf_counter() - t_start
+    steps = 0
+    touched = False  # a finger has touched the nut (from then on the pre-grasp goal and rest height are frozen)
+    try:
+        for t in range(int(horizon)):
+            if policy.image_size:
+                t0 = time.perf_counter()
+                obs["camera0_rgb"] = camera.render(env.data, env.wrist_pose())
+                tm["render"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            action = policy.act(env, obs)
+            t1 = time.perf_counter()
+            obs, _, _, _ = env.step(action)
+            t2 = time.perf_counter()
+            tm["policy"] += t1 - t0
+            tm["sim"] += t2 - t1
+            steps = t + 1
+            # ---- sub-goals and contacts of the state after this step
+            c_table, c_peg, c_nut = probe.contacts()
+            rec["collision_table_steps"] += int(c_table)
+            rec["collision_peg_steps"] += int(c_peg)
+            nut = probe.nut_pose()
+            touched = touched or c_nut
+            if not touched:  # the nut settles after the reset (spawned 2 cm up): follow it until first touched
+                nut_rest = nut
+                T_pre = expert_pregrasp_pose(nut, probe.table_z)
+            if not touched:  # min errors over the approach; reached = first step within tolerance
+                dp, dr = _pregrasp_error(probe.site_pose(), T_pre)
+                rec["pregrasp_min_pos_err_m"] = min(rec["pregrasp_min_pos_err_m"], dp)
+                rec["pregrasp_min_rot_err_deg"] = min(rec["pregrasp_min_rot_err_deg"], math.degrees(dr))
+                if not rec["pregrasp_reached"] and dp <= PREGRASP_POS_TOL_M and dr <= math.radians(PREGRASP_ROT_TOL_DEG):
+                    rec["pregrasp_reached"], rec["pregrasp_step"] = True, steps
+            rise = float(nut[2, 3] - nut_rest[2, 3])
+            rec["max_nut_rise_m"] = max(rec["max_nut_rise_m"], rise)
+            if not rec["lifted"] and rise >= LIFT_HEIGHT_M and c_nut:
+                rec["lifted"], rec["lifted_step"] = True, steps
+            if not rec["inserted"] and probe.on_peg():
+                rec["inserted"], rec["inserted_step"] = True, steps
+            success = env.is_success()
+            if videos is not None:
+                videos.frame(t)
+            tm["other"] += time.perf_counter() - t2
+            if success and not rec["success"]:
+                rec["success"], rec["steps_to_success"] = True, steps
+                if stop_on_success:
+                    break
+    finally:
+        if videos is not None:
+            videos.close()
+    for k in ("pregrasp_min_pos_err_m", "pregrasp_min_rot_err_deg"):
+        rec[k] = None if not math.isfinite(rec[k]) else float(rec[k])
+    rec["collision_table"] = rec["collision_table_steps"] > 0
+    rec["collision_peg"] = rec["collision_peg_steps"] > 0
+    rec["steps"] = steps
+    import hashlib
+
+    rec["final_state_sha1"] = hashlib.sha1(np.ascontiguousarray(env.get_state()).tobytes()).hexdigest()
+    if hasattr(policy, "info"):
+        rec["policy_info"] = policy.info()
+    rec["time_s"] = tm
+    rec["wall_s"] = time.perf_counter() - t_start
+    return rec

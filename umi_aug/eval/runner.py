@@ -1,0 +1,326 @@
+"""The evaluation loop over stored start configurations: selection, workers, resume, summary, pictures.
+
+:func:`run_eval` is what ``python eval/eval_sim.py`` calls. Each selected configuration is one task
+``(configuration index, state, rollout seed)``; tasks run through :func:`umi_aug.augment.executor.map_ordered`
+(in this process for ``workers=1``, spawned processes otherwise — one SquareEnv + one policy per process, built on
+its first task and reused, 1 torch/BLAS thread — or Ray with ``executor=ray``). Finished configurations are
+appended to ``results.jsonl`` as they come back; a rerun skips them, so an interrupted run resumes and a finished
+one only recomputes its summary (the same, since it is computed from the records alone).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from umi_aug.errors import EvalError, UmiAugError
+from umi_aug.eval.config import EvalSimConfig, parse_config_selection
+from umi_aug.eval.results import ResultsLog, check_run_key, file_sha256
+from umi_aug.eval.stats import summarise
+
+__all__ = ["run_eval", "load_eval_configs", "rollout_seed", "default_out_dir", "replay_configs"]
+
+log = logging.getLogger(__name__)
+
+_WORKER: dict[str, Any] = {}  # per-process env + policy, keyed by the policy spec
+
+
+def rollout_seed(base_seed: int, config: int) -> int:
+    """Seed of rollout ``config`` (independent of worker and order): ``SeedSequence([base_seed, config])``."""
+    return int(np.random.SeedSequence([int(base_seed), int(config)]).generate_state(1)[0])
+
+
+def load_eval_configs(path: str | Path) -> dict[str, Any]:
+    """Read and validate a start-configuration file (``umi-aug square-init-configs``).
+
+    Returns:
+        ``{"states": float64 [N, S], "T_world_cam": float64 [N, 4, 4], "source_index": [N] or None, "env_args":
+        dict or None}``.
+    Raises:
+        EvalError: missing/unreadable file, missing key, wrong shape or non-finite values (names file and key).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise EvalError(f"configs_file={str(path)!r}: no such file (the 1000 square configurations are "
+                        f"eval/square_init_configs_1000.npz; run from the repository root)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:  # numpy raises several types for a damaged archive
+        raise EvalError(f"configs_file={str(path)!r}: not a readable .npz ({type(exc).__name__}: {exc})") from exc
+    for key in ("states", "T_world_cam"):
+        if key not in data:
+            raise EvalError(f"configs_file={str(path)!r}: key {key!r} missing (keys: {sorted(data)})")
+    states = np.asarray(data["states"])
+    T = np.asarray(data["T_world_cam"])
+    if states.ndim != 2 or states.shape[0] < 1 or not np.issubdtype(states.dtype, np.floating):
+        raise EvalError(f"configs_file={str(path)!r}: 'states' must be float [N, S], got {states.dtype} "
+                        f"{states.shape}")
+    if T.shape != (len(states), 4, 4):
+        raise EvalError(f"configs_file={str(path)!r}: 'T_world_cam' must be [{len(states)}, 4, 4], got {T.shape}")
+    for key, arr in (("states", states), ("T_world_cam", T)):
+        bad = np.where(~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1))[0]
+        if len(bad):
+            raise EvalError(f"configs_file={str(path)!r}: key {key!r} has non-finite values in rows "
+                            f"{bad[:5].tolist()}")
+    env_args = None
+    if "env_args" in data:
+        import json
+
+        try:
+            env_args = json.loads(str(data["env_args"]))
+        except ValueError as exc:
+            raise EvalError(f"configs_file={str(path)!r}: key 'env_args' is not JSON ({exc})") from exc
+    return {"states": states.astype(np.float64), "T_world_cam": T.astype(np.float64),
+            "source_index": data.get("source_index"), "env_args": env_args}
+
+
+def replay_configs(replay_dir: str | Path) -> tuple[dict[str, Any], list[np.ndarray], list[str]]:
+    """Start configurations + actions of recorded episode shards (``seed_*.npz`` in ``replay_dir``, sorted):
+    configuration ``i`` is shard ``i``'s own start state ``states[0]``."""
+    from umi_aug.geometry import pose_inverse
+    from umi_aug.sim.square.camera import T_CAM_TCP
+    from umi_aug.sim.square.writers import load_episode
+
+    d = Path(replay_dir)
+    files = sorted(d.glob("seed_*.npz")) if d.is_dir() else []
+    if not files:
+        raise EvalError(f"replay_dir={str(replay_dir)!r}: no episode shards seed_*.npz (umi-aug square-demos "
+                        f"writes them to <out>/shards/)")
+    states, T_cam, actions = [], [], []
+    for f in files:
+        try:
+            ep = load_episode(f)
+        except UmiAugError as exc:
+            raise EvalError(f"replay_dir: {exc}") from exc
+        states.append(ep.states[0])
+        T_cam.append(ep.T_world_tcp[0] @ pose_inverse(np.asarray(T_CAM_TCP)))
+        actions.append(ep.actions)
+    return ({"states": np.stack(states), "T_world_cam": np.stack(T_cam), "source_index": None, "env_args": None},
+            actions, [f.name for f in files])
+
+
+def default_out_dir(cfg: EvalSimConfig) -> Path:
+    """``eval_runs/<policy>`` or, for a checkpoint, ``eval_runs/<checkpoint folder>_<file stem>``."""
+    if cfg.policy == "checkpoint" and cfg.checkpoint:
+        p = Path(cfg.checkpoint)
+        return Path("eval_runs") / f"{p.parent.name}_{p.stem}"
+    return Path("eval_runs") / cfg.policy
+
+
+def _build_policy(spec: dict[str, Any]):
+    from umi_aug.eval import policies as P
+
+    kind = spec["policy"]
+    if kind == "expert":
+        return P.ExpertEvalPolicy()
+    if kind == "hold":
+        return P.HoldStillEvalPolicy()
+    if kind == "random":
+        return P.RandomEvalPolicy(spec["random_scale"])
+    if kind == "replay":
+        return P.ReplayEvalPolicy(spec["replay_actions"])
+    if kind == "checkpoint":
+        return P.CheckpointEvalPolicy.from_checkpoint(spec["checkpoint"], device=spec["device"],
+                                      n_action_steps=spec["n_action_steps"],
+                                      gripper_deadband_m=spec["gripper_deadband_m"])
+    raise EvalError(f"policy={kind!r}: expected one of {list(P.POLICY_KINDS)}")
+
+
+def _worker_state(spec: dict[str, Any]) -> dict[str, Any]:
+    """This process's env + policy (+ camera) for ``spec`` (built once)."""
+    key = spec["key"]
+    if _WORKER.get("key") != key:
+        for old in ("env",):
+            if old in _WORKER:
+                _WORKER[old].close()
+        _WORKER.clear()
+        from umi_aug.eval.rollout import SceneProbe
+        from umi_aug.sim.square.camera import WristFisheyeCamera
+        from umi_aug.sim.square.env import SquareEnv
+
+        policy = _build_policy(spec)
+        env = SquareEnv(env_meta=spec["env_meta"], image_size=None)
+        cams: dict[int, Any] = {}
+
+        def camera(size: int):
+            if size not in cams:
+                cams[size] = WristFisheyeCamera(env.model, size)
+            return cams[size]
+
+        _WORKER.update(key=key, env=env, probe=SceneProbe(env), policy=policy, camera=camera)
+    return _WORKER
+
+
+def _run_task(task: tuple[dict[str, Any], int, np.ndarray, int, dict | None]) -> dict[str, Any]:
+    """Worker body: one rollout (top-level so spawned processes and Ray can pickle it)."""
+    from umi_aug.eval.rollout import VideoSpec, rollout_config
+
+    spec, config, state, seed, video = task
+    w = _worker_state(spec)
+    policy = w["policy"]
+    cam = w["camera"](policy.image_size) if policy.image_size else None
+    vspec = VideoSpec(**video) if video else None
+    return rollout_config(w["env"], w["probe"], policy, state, config, seed, horizon=spec["horizon"], camera=cam,
+                          stop_on_success=spec["stop_on_success"], video=vspec, camera_factory=w["camera"])
+
+
+def _print_table(summary: dict[str, Any], title: str) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    def pct(d: dict[str, Any]) -> str:
+        lo, hi = d["wilson95"]
+        return f"{100 * d['rate']:.1f} % ({d['count']}/{summary['n']})  [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+    t = Table(title=title)
+    t.add_column("metric")
+    t.add_column("value (Wilson 95 %)")
+    lo, hi = summary["success_wilson95"]
+    t.add_row("success", f"{100 * summary['success_rate']:.1f} % ({summary['successes']}/{summary['n']})  "
+                         f"[{100 * lo:.1f}, {100 * hi:.1f}]")
+    for k, v in summary["subgoals"].items():
+        t.add_row(k, pct(v))
+    for k, v in summary["collisions"].items():
+        t.add_row(k, pct(v))
+    s2s = summary["mean_steps_to_success"]
+    t.add_row("mean steps to success", "—" if s2s is None else f"{s2s:.1f}")
+    t.add_row("rollouts / hour", f"{summary['rollouts_per_hour']:.0f} ({summary['workers']} worker(s))")
+    ms = summary["time_per_step_ms"]
+    t.add_row("ms / step: sim | render | policy | other",
+              f"{ms['sim']:.1f} | {ms['render']:.1f} | {ms['policy']:.1f} | {ms['other']:.1f}")
+    Console().print(t)
+
+
+def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
+    """Evaluate ``cfg.policy`` on the selected configurations; returns the summary (also ``summary.json``).
+
+    Raises:
+        EvalError: bad configuration file / selection / policy settings, or ``out_dir`` of a different run.
+        PolicyError: a malformed checkpoint.
+    """
+    from tqdm import tqdm
+
+    from umi_aug.augment.executor import map_ordered, usable_cores
+    from umi_aug.eval.pictures import plot_init_success
+    from umi_aug.eval.policies import POLICY_KINDS
+    from umi_aug.io_utils import atomic_write_text
+
+    if cfg.policy not in POLICY_KINDS:
+        raise EvalError(f"policy={cfg.policy!r}: expected one of {list(POLICY_KINDS)}")
+    if int(cfg.horizon) < 1:
+        raise EvalError(f"horizon={cfg.horizon!r}: need at least 1 control step")
+    out_dir = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
+    key: dict[str, Any] = {"policy": cfg.policy, "horizon": int(cfg.horizon), "seed": int(cfg.seed),
+                           "stop_on_success": bool(cfg.stop_on_success)}
+    spec: dict[str, Any] = {"policy": cfg.policy, "horizon": int(cfg.horizon),
+                            "stop_on_success": bool(cfg.stop_on_success)}
+    replay_actions = None
+    if cfg.policy == "replay":
+        if not cfg.replay_dir:
+            raise EvalError("policy=replay needs replay_dir=<folder of episode shards seed_*.npz>")
+        configs, replay_actions, names = replay_configs(cfg.replay_dir)
+        key["replay_episodes"] = names
+        spec["replay_actions"] = replay_actions
+    else:
+        configs = load_eval_configs(cfg.configs_file)
+        key["configs_file_sha256"] = file_sha256(cfg.configs_file)
+    if cfg.policy == "checkpoint":
+        if not cfg.checkpoint:
+            raise EvalError("policy=checkpoint needs checkpoint=PATH (or policy=expert|replay|hold|random)")
+        if not Path(cfg.checkpoint).is_file():
+            raise EvalError(f"checkpoint={cfg.checkpoint!r}: no such file")
+        key |= {"checkpoint_sha256": file_sha256(cfg.checkpoint), "n_action_steps": cfg.n_action_steps,
+                "gripper_deadband_m": float(cfg.gripper_deadband_m)}
+        spec |= {"checkpoint": str(Path(cfg.checkpoint).resolve()), "device": cfg.device,
+                 "n_action_steps": cfg.n_action_steps, "gripper_deadband_m": float(cfg.gripper_deadband_m)}
+        from umi_aug.eval.policies import CheckpointEvalPolicy
+
+        CheckpointEvalPolicy.from_checkpoint(cfg.checkpoint, device=cfg.device,
+                                             n_action_steps=cfg.n_action_steps)  # a bad checkpoint fails here
+    if cfg.policy == "random":
+        key["random_scale"] = spec["random_scale"] = float(cfg.random_scale)
+    if cfg.executor not in ("local", "ray"):
+        raise EvalError(f"executor={cfg.executor!r}: expected 'local' or 'ray'")
+    selected = parse_config_selection(cfg.configs, len(configs["states"]))
+    spec["env_meta"] = configs["env_args"]
+    spec["key"] = repr(sorted((k, str(v)) for k, v in key.items()))
+    check_run_key(out_dir, key)
+    results = ResultsLog(out_dir / "results.jsonl")
+    done = results.read()
+    todo = [i for i in selected if i not in done]
+    workers = int(cfg.workers) if cfg.workers else usable_cores()
+    workers = max(1, min(workers, max(len(todo), 1)))
+    video_dir = out_dir / "videos"
+    tasks = []
+    for k, i in enumerate(selected):
+        if i in done:
+            continue
+        video = None
+        if cfg.video_every and k % int(cfg.video_every) == 0:
+            video_dir.mkdir(parents=True, exist_ok=True)
+            video = {"wrist_path": str(video_dir / f"config_{i:04d}_wrist.mp4"),
+                     "external_path": str(video_dir / f"config_{i:04d}_external.mp4"), "size": int(cfg.video_size)}
+        tasks.append((spec, i, configs["states"][i], rollout_seed(cfg.seed, i), video))
+    log.info("eval %s: %d selected, %d already done, %d to run on %d worker(s) (%s) → %s", cfg.policy,
+             len(selected), len(selected) - len(todo), len(todo), workers, cfg.executor, out_dir)
+    t0 = time.perf_counter()
+    n_ok = sum(bool(done[i]["success"]) for i in selected if i in done)
+    n_seen = len(selected) - len(todo)
+    bar = tqdm(total=len(selected), initial=n_seen, desc=f"eval {cfg.policy}", disable=not cfg.progress,
+               dynamic_ncols=True)
+    try:
+        if tasks:
+            it = map_ordered(_run_task, tasks, executor=cfg.executor, workers=workers, address=cfg.ray_address,
+                             threads_per_worker=1)
+            for rec in it:
+                if configs.get("source_index") is not None:
+                    rec["source_index"] = int(configs["source_index"][rec["config"]])
+                results.append(rec)
+                done[rec["config"]] = rec
+                n_ok += int(rec["success"])
+                n_seen += 1
+                bar.set_postfix_str(f"success {n_ok}/{n_seen} = {100.0 * n_ok / n_seen:.1f} %")
+                bar.update(1)
+    finally:
+        bar.close()
+    recs = [done[i] for i in selected]
+    summary = summarise(recs, wall_seconds=time.perf_counter() - t0, workers=workers)
+    summary |= {"workers": workers, "policy": cfg.policy, "checkpoint": cfg.checkpoint,
+                "configs_file": None if cfg.policy == "replay" else cfg.configs_file, "configs": cfg.configs,
+                "horizon": int(cfg.horizon), "seed": int(cfg.seed),
+                "pregrasp_tolerance": _pregrasp_tolerance(), "config": asdict(cfg)}
+    atomic_write_text(out_dir / "summary.json", _json(summary))
+    plot_init_success(out_dir / "init_success.png", configs["T_world_cam"], done, selected,
+                      title=f"{cfg.policy}{' ' + Path(cfg.checkpoint).name if cfg.checkpoint else ''}: "
+                            f"{summary['successes']}/{summary['n']} successful")
+    if cfg.progress:
+        _print_table(summary, f"eval_sim: {cfg.policy} on {len(selected)} configurations → {out_dir}")
+    return summary
+
+
+def _pregrasp_tolerance() -> dict[str, float]:
+    from umi_aug.eval.rollout import PREGRASP_POS_TOL_M, PREGRASP_ROT_TOL_DEG
+
+    return {"pos_m": PREGRASP_POS_TOL_M, "rot_deg": PREGRASP_ROT_TOL_DEG}
+
+
+def _json(obj: Any) -> str:
+    import json
+
+    def clean(o):
+        if isinstance(o, float) and not math.isfinite(o):
+            return None
+        if isinstance(o, dict):
+            return {k: clean(v) for k, v in o.items()}
+        if isinstance(o, (list, tuple)):
+            return [clean(v) for v in o]
+        return o
+
+    return json.dumps(clean(obj), indent=1)

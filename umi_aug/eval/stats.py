@@ -1,0 +1,80 @@
+"""Success-rate statistics of an evaluation: Wilson score interval, per-run summary from rollout records."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Iterable
+
+import numpy as np
+
+__all__ = ["wilson_interval", "summarise"]
+
+#: two-sided 95 % normal quantile
+Z95: float = 1.959963984540054
+
+
+def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (``successes`` of ``n``), as fractions in [0, 1].
+
+    ``n == 0`` gives ``(0.0, 1.0)`` (nothing known). Unlike the normal (Wald) interval it never leaves [0, 1] and
+    is not degenerate at 0 % or 100 %: 1000/1000 gives (0.9962, 1.0).
+    """
+    n = int(n)
+    k = int(successes)
+    if n < 0 or not 0 <= k <= max(n, 0):
+        raise ValueError(f"wilson_interval: need 0 <= successes <= n, got successes={successes}, n={n}")
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    z2 = z * z
+    den = 1.0 + z2 / n
+    centre = (p + z2 / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / den
+    lo = 0.0 if k == 0 else max(0.0, centre - half)  # exact ends (the formula leaves ~1e-19 rounding there)
+    hi = 1.0 if k == n else min(1.0, centre + half)
+    return lo, hi
+
+
+def _rate(records: list[dict[str, Any]], key: str) -> dict[str, Any]:
+    k = sum(bool(r[key]) for r in records)
+    lo, hi = wilson_interval(k, len(records))
+    return {"count": k, "rate": k / len(records) if records else float("nan"), "wilson95": [lo, hi]}
+
+
+def summarise(records: Iterable[dict[str, Any]], wall_seconds: float | None = None, workers: int = 1
+              ) -> dict[str, Any]:
+    """Summary of rollout records (``umi_aug.eval.rollout.rollout_config`` dicts).
+
+    Args:
+        records: finished rollouts (order does not matter; the summary is sorted-order independent).
+        wall_seconds: wall time of this invocation (used only for the informative ``rollouts_per_hour_wall``).
+        workers: parallel workers (for ``rollouts_per_hour`` = workers × 3600 / mean rollout seconds).
+    Returns:
+        JSON-able dict: ``n``, ``success_rate`` + ``success_wilson95``, sub-goal rates, steps, collisions,
+        ``time_per_step_ms`` split (sim / render / policy / other), rollouts per hour.
+    """
+    recs = sorted(records, key=lambda r: r["config"])
+    n = len(recs)
+    out: dict[str, Any] = {"n": n}
+    if n == 0:
+        return out | {"success_rate": float("nan"), "success_wilson95": [0.0, 1.0]}
+    succ = _rate(recs, "success")
+    out["successes"] = succ["count"]
+    out["success_rate"] = succ["rate"]
+    out["success_wilson95"] = succ["wilson95"]
+    out["subgoals"] = {k: _rate(recs, k) for k in ("pregrasp_reached", "lifted", "inserted")}
+    out["collisions"] = {k: _rate(recs, k) for k in ("collision_table", "collision_peg")}
+    s2s = [r["steps_to_success"] for r in recs if r["success"]]
+    out["mean_steps_to_success"] = float(np.mean(s2s)) if s2s else None
+    out["mean_steps"] = float(np.mean([r["steps"] for r in recs]))
+    steps = float(sum(r["steps"] for r in recs))
+    t = {k: float(sum(r["time_s"][k] for r in recs)) for k in ("sim", "render", "policy", "other")}
+    out["time_per_step_ms"] = {k: 1000.0 * v / max(steps, 1.0) for k, v in t.items()}
+    out["time_split"] = {k: v / max(sum(t.values()), 1e-12) for k, v in t.items()}
+    mean_wall = float(np.mean([r["wall_s"] for r in recs]))
+    out["mean_rollout_s"] = mean_wall
+    out["rollouts_per_hour"] = 3600.0 * max(int(workers), 1) / max(mean_wall, 1e-9)
+    if wall_seconds:
+        out["wall_s_this_run"] = float(wall_seconds)
+    out["failures"] = [r["config"] for r in recs if not r["success"]]
+    return out
