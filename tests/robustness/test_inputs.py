@@ -165,6 +165,19 @@ def test_session_episode_length_mismatch(session):
                                f"belongs to another session or demo")
 
 
+def test_session_image_size_other_than_the_runs(session, tmp_path, stop_before_stages):
+    from umi_aug.errors import AugmentError
+
+    ds = session / "dataset.zarr.zip"
+    before = snapshot(session)
+    with pytest.raises(AugmentError) as e:  # before: found after the reconstruction, in the gripper_mask stage
+        stop_before_stages.export(session, tmp_path / "o.zarr", small_cfg(image_size=2 * S), work_dir=tmp_path / "w",
+                                  progress=False)
+    assert str(e.value) == (f"{ds}: key 'data/camera0_rgb' has {S}x{S} frames but image_size = {2 * S}; export at "
+                            f"the dataset's resolution (--image-size {S})")
+    assert snapshot(session) == before
+
+
 def test_session_missing_image_chunk(session):
     import zipfile
 

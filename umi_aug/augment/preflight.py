@@ -58,7 +58,7 @@ def intrinsics_warnings(intr, source: str, frame_size: tuple[int, int] | None = 
     return out
 
 
-def _dataset_check(ds: Path) -> tuple[int, dict[int, np.ndarray], int]:
+def _dataset_check(ds: Path, image_size: int | None) -> tuple[int, dict[int, np.ndarray], int]:
     """Validate the session's dataset: (episodes, {episode: gripper widths}, bytes)."""
     from umi_aug.data import ReplayBuffer
 
@@ -70,6 +70,12 @@ def _dataset_check(ds: Path) -> tuple[int, dict[int, np.ndarray], int]:
             widths = {i: np.asarray(buf.get_episode(i, ["robot0_gripper_width"])["robot0_gripper_width"],
                                     dtype=np.float64).reshape(-1) for i in range(buf.n_episodes)}
             n = buf.n_episodes
+            if image_size is not None and "camera0_rgb" in buf:
+                shape = tuple(buf["camera0_rgb"].shape[1:3])
+                if shape != (image_size, image_size):
+                    raise AugmentError(f"{ds}: key 'data/camera0_rgb' has {shape[1]}x{shape[0]} frames but "
+                                       f"image_size = {image_size}; export at the dataset's resolution "
+                                       f"(--image-size {shape[0]})")
     except AugmentError:
         raise
     except UmiAugError as exc:
@@ -83,8 +89,10 @@ def _once(msg: str) -> str:
     return rest if sep and rest.startswith(head + ": ") else msg
 
 
-def check_session_inputs(session_dir: str | os.PathLike) -> InputCheck:
+def check_session_inputs(session_dir: str | os.PathLike, image_size: int | None = None) -> InputCheck:
     """Check a UMI session folder before any stage runs (see the module doc). Returns an :class:`InputCheck`.
+
+    ``image_size``: the run's policy image side (pixels): the dataset's frames must have it (None: not checked).
 
     Raises:
         AugmentError: the first problem, naming the file/key/row/value.
@@ -96,7 +104,7 @@ def check_session_inputs(session_dir: str | os.PathLike) -> InputCheck:
     if not ds.exists():
         raise AugmentError(f"{root}: no dataset.zarr.zip (the original episodes); run UMI's "
                            "07_generate_replay_buffer first")
-    n_eps, widths, nbytes = _dataset_check(ds)
+    n_eps, widths, nbytes = _dataset_check(ds, image_size)
     try:
         sess = load_session(root)  # CSVs (columns, monotonic timestamps, one row per frame), mapping, intrinsics
     except UmiAugError as exc:
