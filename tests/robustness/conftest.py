@@ -64,7 +64,8 @@ def build_session(root: Path) -> Path:
     _write_video(root / "demos" / "demo_00" / "raw_video.mp4", N_DEMO)
     _write_csv(root / "demos" / "demo_00" / "camera_trajectory.csv", N_DEMO)
     (root / "calibration").mkdir(parents=True, exist_ok=True)
-    save_umi_intrinsics_json(gopro_intrinsics_2_7k().scaled(W, H), root / "calibration" / f"gopro_intrinsics_{W}x{H}.json")
+    save_umi_intrinsics_json(gopro_intrinsics_2_7k().scaled(W, H),
+                             root / "calibration" / f"gopro_intrinsics_{W}x{H}.json")
     write_dataset(root / "dataset.zarr.zip")
     return root
 

@@ -205,7 +205,8 @@ def test_session_non_monotonic_csv_timestamps(session):
 def test_session_missing_mapping_csv(session):
     csv = session / "demos" / "mapping" / "mapping_camera_trajectory.csv"
     csv.unlink()
-    assert _check(session) == (f"{csv}: missing (the camera trajectory of {session / 'demos' / 'mapping' / 'raw_video.mp4'}"
+    video = session / "demos" / "mapping" / "raw_video.mp4"
+    assert _check(session) == (f"{csv}: missing (the camera trajectory of {video}"
                                f", from UMI's SLAM step); every sequence needs its CSV")
 
 
@@ -265,7 +266,8 @@ def test_an_interrupted_stage_does_not_block_a_config_change(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------- real data
-REAL = Path(__file__).resolve().parents[2].parent / "shared" / "realdata" / "umi_cup_in_the_wild_ep0" / "dataset.zarr.zip"
+REAL = (Path(__file__).resolve().parents[2].parent / "shared" / "realdata" / "umi_cup_in_the_wild_ep0"
+        / "dataset.zarr.zip")
 
 
 @pytest.mark.skipif(not REAL.is_file(), reason=f"real UMI dataset not present at {REAL}")

@@ -386,7 +386,7 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
         raise AugmentError(f"{session_dir}: neither a UMI session folder (no demos/) nor a UMI dataset "
                            f"(*.zarr.zip or a zarr directory with data/ and meta/)")
     else:
-        n_src = n_aug = check_session_inputs(session_dir, cfg.image_size).n_episodes  # every input, one pass, before compute
+        n_src = n_aug = check_session_inputs(session_dir, cfg.image_size).n_episodes  # all inputs, before compute
         src_ds = Path(session_dir) / "dataset.zarr.zip"
         key = _run_key(cfg, session_fingerprint(Path(session_dir)))
     wpath = _working_path(out)

@@ -162,8 +162,8 @@ def check_chunk_listing(key: str, arr: zarr.Array, name: str) -> None:
         row = int(missing[0].replace("/", ".").split(".")[0]) * arr.chunks[0]
         raise DatasetError(f"{name}: key 'data/{key}': {len(missing)} of {len(expected)} chunks missing, first "
                            f"'{missing[0]}' (rows {row}..{min(row + arr.chunks[0], arr.shape[0]) - 1}); they would "
-                           f"read as fill value {_plain(arr.fill_value)} (black frames / zeros). The dataset is truncated or "
-                           f"was copied incompletely: re-copy or re-create it")
+                           f"read as fill value {_plain(arr.fill_value)} (black frames / zeros). The dataset is "
+                           f"truncated or was copied incompletely: re-copy or re-create it")
 
 
 def decode_all_chunks(key: str, arr: zarr.Array, name: str, progress: bool = False) -> int:
@@ -180,7 +180,8 @@ def decode_all_chunks(key: str, arr: zarr.Array, name: str, progress: bool = Fal
         try:
             arr[i * c0:(i + 1) * c0]
         except Exception as exc:  # codec errors are of many types (imagecodecs, numcodecs, zlib, ValueError)
-            raise DatasetError(f"{name}: key 'data/{key}': chunk {i} (rows {i * c0}..{min((i + 1) * c0, arr.shape[0]) - 1}) "
+            last = min((i + 1) * c0, arr.shape[0]) - 1
+            raise DatasetError(f"{name}: key 'data/{key}': chunk {i} (rows {i * c0}..{last}) "
                                f"cannot be decoded ({type(exc).__name__}: {exc}); the chunk is corrupt: re-copy "
                                f"or re-create the dataset") from exc
     return n
