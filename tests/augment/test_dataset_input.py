@@ -175,7 +175,7 @@ def test_real_demonstration_end_to_end(tmp_path):
     out = tmp_path / "real_aug.zarr.zip"
     cfg = AugmentConfig(mode="freespace", n_per_demo=1, seed=0,
                         splat=SplatStageConfig(iterations=20, max_gaussians=4000, sh_degree=0))
-    inp = DatasetInput(sfm_stride=6, background_points=500)
+    inp = DatasetInput(sfm_stride=8, background_points=500)
     s = export(REAL, out, cfg, dataset_input=inp, progress=False)
     assert s.n_failed == 0 and s.n_original == 1 and s.n_augmented == 1
     rep = validate_replay_buffer(out)
