@@ -49,3 +49,7 @@ class PolicyError(UmiAugError, ValueError):
 
 class EvalError(UmiAugError, ValueError):
     """Policy evaluation problem (configuration file, selection, results folder of another run)."""
+
+
+class DeployError(UmiAugError, RuntimeError):
+    """Robot deployment problem: bad robot config, lost connection, safety stop (the message says which)."""
