@@ -1,0 +1,266 @@
+"""UR arm through ur-rtde (UMI's ``RTDEInterpolationController``), in its own process.
+
+The controller loop runs at the controller rate (500 Hz e-Series, 125 Hz CB3): each period it samples the
+pose-trajectory interpolator at ``now`` and sends ``servoL(pose, 0.5, 0.5, dt, lookahead_time, gain)`` (positional,
+as UMI), pushes the measured state (``timestamp = receive time − obs_latency``) into a shared ring buffer and
+drains scheduled waypoints. Added to UMI: protective-stop / e-stop / safety-mode checks every period, a watchdog
+on the runner's heartbeat, and ``servoStop`` → ``stopScript`` → ``disconnect`` on every exit path (also errors).
+
+``rtde_control`` / ``rtde_receive`` are imported by name inside the loop (``URConfig.rtde_modules``), so tests
+can inject fakes at the Python module boundary.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import multiprocessing as mp
+import queue
+import time
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+import numpy as np
+
+from umi_aug.deploy.clock import Clock, MonotonicClock
+from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
+from umi_aug.deploy.safety import SafetyStop
+from umi_aug.deploy.shared_state import SharedStateBuffer
+from umi_aug.errors import DeployError
+
+__all__ = ["URConfig", "URServoLoop", "URRTDERobot", "SAFETY_MODES", "STATE_FIELDS"]
+
+log = logging.getLogger(__name__)
+
+CONTROL_RATE_HZ = {"ur5e": 500.0, "ur10e": 500.0, "ur3e": 500.0, "ur16e": 500.0, "ur5": 125.0, "ur10": 125.0,
+                   "ur3": 125.0}
+# ur-rtde getSafetyMode() values (UR client interface): only NORMAL and REDUCED allow motion
+SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
+                6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
+                10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
+                13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
+STATE_FIELDS = {"timestamp": 1, "tcp_pose": 6, "tcp_speed": 6, "q": 6, "qd": 6, "target_pose": 6}
+
+
+@dataclass
+class URConfig:
+    """The ``robot:`` block of ``configs/robot/ur5e.yaml`` (UMI's ``eval_robots_config.yaml`` fields + limits).
+
+    Attributes:
+        robot_ip: controller address. robot_type: ur5e/ur5/... (sets the control rate).
+        tcp_offset: TCP along the flange z axis (m) → ``setTcp([0, 0, tcp_offset, 0, 0, 0])``.
+        obs_latency: subtracted from state receive times (s). action_latency: used by the runner (s).
+        lookahead_time: servoL lookahead, [0.03, 0.2] s. gain: servoL gain, [100, 2000].
+        max_pos_speed, max_rot_speed: interpolator limits (m/s, rad/s).
+        watchdog_s: stop when the runner has not sent a heartbeat for this long (s); must exceed one
+            inference cycle (``steps_per_inference·dt``).
+        joints_init: optional start joints (deg) reached with moveJ before servoing.
+        rtde_modules: module names providing ``RTDEControlInterface`` / ``RTDEReceiveInterface``.
+    """
+
+    robot_ip: str = "192.168.0.8"
+    robot_type: str = "ur5e"
+    tcp_offset: float = 0.235
+    obs_latency: float = 0.0001
+    action_latency: float = 0.1
+    lookahead_time: float = 0.1
+    gain: float = 300.0
+    max_pos_speed: float = 0.25
+    max_rot_speed: float = 0.6
+    watchdog_s: float = 2.0
+    joints_init: list[float] | None = None
+    rtde_modules: list[str] = field(default_factory=lambda: ["rtde_control", "rtde_receive"])
+
+    @property
+    def frequency(self) -> float:
+        return CONTROL_RATE_HZ[self.robot_type]
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any], where: str = "robot") -> "URConfig":
+        """Validated config; one :class:`DeployError` naming the key and value otherwise."""
+        known = {f.name for f in fields(cls)}
+        extra = sorted(set(m) - known)
+        if extra:
+            raise DeployError(f"{where}: unknown key(s) {extra}; known: {sorted(known)}")
+        c = cls(**{k: (list(v) if k in ("joints_init", "rtde_modules") and v is not None else v)
+                   for k, v in m.items()})
+        if c.robot_type not in CONTROL_RATE_HZ:
+            raise DeployError(f"{where}.robot_type={c.robot_type!r}; expected one of {sorted(CONTROL_RATE_HZ)}")
+        if not 0.03 <= c.lookahead_time <= 0.2:
+            raise DeployError(f"{where}.lookahead_time={c.lookahead_time} must be in [0.03, 0.2] s (ur-rtde servoL)")
+        if not 100 <= c.gain <= 2000:
+            raise DeployError(f"{where}.gain={c.gain} must be in [100, 2000] (ur-rtde servoL)")
+        for k in ("max_pos_speed", "max_rot_speed", "watchdog_s"):
+            if not float(getattr(c, k)) > 0:
+                raise DeployError(f"{where}.{k}={getattr(c, k)} must be > 0")
+        if not 0 <= c.tcp_offset < 0.5:
+            raise DeployError(f"{where}.tcp_offset={c.tcp_offset} m must be in [0, 0.5)")
+        if c.joints_init is not None and len(c.joints_init) != 6:
+            raise DeployError(f"{where}.joints_init must be 6 joint angles (deg), got {c.joints_init}")
+        if len(c.rtde_modules) != 2:
+            raise DeployError(f"{where}.rtde_modules must name 2 modules, got {c.rtde_modules}")
+        return c
+
+
+def check_robot_safety(rr: Any) -> None:
+    """Raise :class:`SafetyStop` when the receive interface reports a stop or a non-normal safety mode."""
+    if not rr.isConnected():
+        raise SafetyStop("lost the RTDE connection to the robot")
+    if rr.isEmergencyStopped():
+        raise SafetyStop("robot emergency stop is active; release it and restart the runner")
+    if rr.isProtectiveStopped():
+        raise SafetyStop("robot is in protective stop (collision or limit); unlock it on the pendant and restart")
+    mode = int(rr.getSafetyMode())
+    if mode not in (1, 2):
+        raise SafetyStop(f"robot safety mode is {SAFETY_MODES.get(mode, mode)} ({mode}); only NORMAL/REDUCED allow "
+                         f"motion")
+
+
+class URServoLoop:
+    """The controller loop (process-independent so tests can run it in-thread with a fake clock).
+
+    Args:
+        cfg: robot config. commands: queue of ``("waypoint", pose[6], t)`` / ``("stop",)``.
+        state: ring buffer with :data:`STATE_FIELDS`. stop_event: set → leave the loop cleanly.
+        heartbeat: shared double, last runner heartbeat time (watchdog). clock: the time base.
+    """
+
+    def __init__(self, cfg: URConfig, commands: Any, state: SharedStateBuffer, stop_event: Any, heartbeat: Any,
+                 clock: Clock | None = None) -> None:
+        self.cfg, self.commands, self.state, self.stop_event = cfg, commands, state, stop_event
+        self.heartbeat = heartbeat
+        self.clock = clock or MonotonicClock()
+
+    def run(self) -> None:
+        """Connect, servo until stopped; always ``servoStop``/``stopScript``/``disconnect``. Errors propagate."""
+        cfg = self.cfg
+        mod_c, mod_r = (importlib.import_module(n) for n in cfg.rtde_modules)
+        rc = mod_c.RTDEControlInterface(cfg.robot_ip, cfg.frequency)
+        rr = None
+        try:
+            rr = mod_r.RTDEReceiveInterface(cfg.robot_ip, cfg.frequency)
+            self._servo(rc, rr)
+        finally:
+            for name, fn in (("servoStop", lambda: rc.servoStop()), ("stopScript", rc.stopScript),
+                             ("disconnect", rc.disconnect), ("receive.disconnect", rr.disconnect if rr else None)):
+                if fn is None:
+                    continue
+                try:
+                    fn()
+                except Exception as exc:  # noqa: BLE001 - every stop step must run
+                    log.error("ur-rtde %s failed: %s", name, exc)
+
+    def _servo(self, rc: Any, rr: Any) -> None:
+        cfg = self.cfg
+        dt = 1.0 / cfg.frequency
+        rc.setTcp([0.0, 0.0, float(cfg.tcp_offset), 0.0, 0.0, 0.0])
+        check_robot_safety(rr)
+        if cfg.joints_init is not None:
+            rc.moveJ(list(np.deg2rad(cfg.joints_init)), 1.05, 1.4)
+        t_now = self.clock.now()
+        interp = PoseTrajectoryInterpolator([t_now], [np.asarray(rr.getActualTCPPose(), float)])
+        last_wp: float | None = None
+        while not self.stop_event.is_set():
+            t_period = rc.initPeriod()
+            t_now = self.clock.now()
+            check_robot_safety(rr)
+            age = t_now - float(self.heartbeat.value)
+            if age > cfg.watchdog_s:
+                raise SafetyStop(f"watchdog: no heartbeat from the runner for {age:.2f} s > robot.watchdog_s="
+                                 f"{cfg.watchdog_s}")
+            pose = interp(t_now)
+            if not rc.servoL(pose.tolist(), 0.5, 0.5, dt, cfg.lookahead_time, cfg.gain):
+                raise SafetyStop("servoL was refused by the controller (program stopped?)")
+            t_recv = self.clock.now()
+            self.state.put({"timestamp": t_recv - cfg.obs_latency, "tcp_pose": rr.getActualTCPPose(),
+                            "tcp_speed": rr.getActualTCPSpeed(), "q": rr.getActualQ(), "qd": rr.getActualQd(),
+                            "target_pose": pose})
+            while True:
+                try:
+                    cmd = self.commands.get_nowait()
+                except queue.Empty:
+                    break
+                if cmd[0] == "stop":
+                    return
+                _, wp, t_wp = cmd
+                interp = interp.schedule_waypoint(np.asarray(wp, float), float(t_wp), cfg.max_pos_speed,
+                                                  cfg.max_rot_speed, curr_time=t_now + dt, last_waypoint_time=last_wp)
+                last_wp = float(t_wp)
+            rc.waitPeriod(t_period)
+
+
+def _process_main(cfg: URConfig, commands: Any, state: SharedStateBuffer, stop_event: Any, heartbeat: Any,
+                  errors: Any) -> None:
+    try:
+        URServoLoop(cfg, commands, state, stop_event, heartbeat).run()
+    except BaseException as exc:  # noqa: BLE001 - reported to the runner
+        errors.put(str(exc) if isinstance(exc, DeployError) else f"{type(exc).__name__}: {exc}")
+
+
+class URRTDERobot:
+    """:class:`~umi_aug.deploy.interfaces.RobotInterface` backed by :class:`URServoLoop` in a child process.
+
+    Times are ``time.monotonic`` seconds (one clock for all processes of the machine).
+    """
+
+    def __init__(self, cfg: URConfig, ctx: Any = None, capacity: int = 2048, connect_timeout_s: float = 10.0) -> None:
+        self.cfg = cfg
+        self._ctx = ctx or mp.get_context("spawn")
+        self.state = SharedStateBuffer(STATE_FIELDS, capacity, self._ctx)
+        self._cmd = self._ctx.Queue()
+        self._errors = self._ctx.Queue()
+        self._stop = self._ctx.Event()
+        self._heartbeat = self._ctx.Value("d", time.monotonic(), lock=False)
+        self._proc: Any = None
+        self._error: str | None = None
+        self.connect_timeout_s = connect_timeout_s
+
+    def start(self) -> None:
+        """Start the controller process and wait for its first state."""
+        self._heartbeat.value = time.monotonic() + self.connect_timeout_s  # grace while connecting
+        self._proc = self._ctx.Process(target=_process_main, name="ur_rtde", daemon=True,
+                                       args=(self.cfg, self._cmd, self.state, self._stop, self._heartbeat,
+                                             self._errors))
+        self._proc.start()
+        deadline = time.monotonic() + self.connect_timeout_s
+        while self.state.count == 0:
+            self.check_ok()
+            if time.monotonic() > deadline:
+                self.stop()
+                raise DeployError(f"robot {self.cfg.robot_ip}: no state within {self.connect_timeout_s} s")
+            time.sleep(0.01)
+
+    def heartbeat(self) -> None:
+        self._heartbeat.value = time.monotonic()
+
+    def get_states(self, n: int) -> dict[str, np.ndarray]:
+        self.heartbeat()
+        return self.state.latest(n)
+
+    def schedule_waypoint(self, pose: np.ndarray, t: float) -> None:
+        self.heartbeat()
+        self._cmd.put(("waypoint", np.asarray(pose, float).reshape(6), float(t)))
+
+    def check_ok(self) -> None:
+        if self._error is None:
+            try:
+                self._error = self._errors.get_nowait()
+            except queue.Empty:
+                pass
+        if self._error is not None:
+            raise SafetyStop(f"robot controller stopped: {self._error}")
+        if self._proc is not None and not self._proc.is_alive():
+            raise SafetyStop(f"robot controller process exited (code {self._proc.exitcode})")
+        self.heartbeat()
+
+    def stop(self) -> None:
+        """Ask the loop to stop (it runs servoStop/stopScript/disconnect) and wait for the process."""
+        if self._proc is None:
+            return
+        self._stop.set()
+        self._proc.join(timeout=5.0)
+        if self._proc.is_alive():
+            log.error("ur_rtde process did not stop in 5 s; terminating it")
+            self._proc.terminate()
+            self._proc.join(timeout=2.0)
+        self._proc = None
