@@ -186,6 +186,22 @@ def test_kill_during_final_cleanup_does_not_block_the_rerun(session, tmp_path, s
     assert snapshot(session, out) == before
 
 
+def test_leftover_temporaries_of_killed_writes_are_removed_and_nothing_else(session, tmp_path, stop_before_stages):
+    out = tmp_path / "aug.zarr.zip"
+    zip_tmp = tmp_path / "aug.zarr.zip.tmp-0a1b2c3d"  # a .zarr.zip write killed half way (disk full)
+    zip_tmp.write_bytes(b"z" * 1000)
+    trash = tmp_path / "aug.zarr.zip.partial.tmp-deadbeef"  # a clean-up killed half way
+    (trash / "data").mkdir(parents=True)
+    keep = [tmp_path / "aug.zarr.zip.tmp-notes.txt", tmp_path / "other.zarr.zip.tmp-0a1b2c3d"]
+    for k in keep:
+        k.write_text("not umi-aug's")
+    before = snapshot(session, *keep)
+    with pytest.raises(Reached):
+        stop_before_stages.export(session, out, small_cfg(), work_dir=tmp_path / "w", progress=False)
+    assert not zip_tmp.exists() and not trash.exists()
+    assert snapshot(session, *keep) == before
+
+
 def test_remove_tree_atomically_leaves_all_or_nothing(tmp_path, monkeypatch):
     import umi_aug.io_utils as io
 

@@ -360,6 +360,19 @@ def _discard_previous(out: Path, wpath: Path) -> None:
         remove_tree_atomically(p)
 
 
+def _remove_leftover_temporaries(out: Path) -> None:
+    """Delete ``<out>.tmp-<8 hex>`` / ``<out>.partial.tmp-<8 hex>`` left by a killed atomic write or clean-up
+    (:func:`umi_aug.io_utils.temp_sibling` names; this run holds the output's lock, so none is in use)."""
+    import glob
+    import re
+
+    pat = re.compile(re.escape(out.name) + r"(\.partial)?\.tmp-[0-9a-f]{8}")
+    for p in out.parent.glob(glob.escape(out.name) + "*.tmp-*") if out.parent.is_dir() else []:
+        if pat.fullmatch(p.name):
+            log.info("export: removing %s (left by an interrupted run)", p)
+            remove_tree_atomically(p)
+
+
 def _expected_bytes(src: Path, n_jobs_max: int, n_src_eps: int, include_original: bool) -> int:
     """About the bytes of the output: the input dataset's bytes per episode x the episodes written."""
     per_ep = tree_size(src) / max(1, n_src_eps)
@@ -390,6 +403,7 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
         src_ds = Path(session_dir) / "dataset.zarr.zip"
         key = _run_key(cfg, session_fingerprint(Path(session_dir)))
     wpath = _working_path(out)
+    _remove_leftover_temporaries(out)
     if not resume:
         _discard_previous(out, wpath)
     finished = False
