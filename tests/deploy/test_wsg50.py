@@ -81,6 +81,7 @@ def test_driver_errors_unknown_script_and_corrupt_reply():
     with pytest.raises(DeployError, match="CRC mismatch"):
         d.measure()
     d.close()
+    srv.thread.join(5)
     with pytest.raises(DeployError, match="cannot connect"):
         WSG50Driver("127.0.0.1", srv.port, timeout_s=0.5).connect()  # server gone
 

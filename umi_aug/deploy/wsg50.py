@@ -199,14 +199,15 @@ class WSG50Driver:
         return self._script(CMD_SCRIPT_POSITION_PD, position_mm, velocity_mm_s, kp, kd, force_limit_n, force_limit_n)
 
     def close(self) -> None:
-        """Stop (no wait), say goodbye, close the socket; never raises."""
+        """Stop the fingers (reply read), say goodbye (no reply), close the socket; never raises."""
         if self.sock is None:
             return
-        for cmd in (CMD_STOP, CMD_DISCONNECT):
+        for cmd, fn in ((CMD_STOP, lambda: self.command(CMD_STOP, wait=False)),
+                        (CMD_DISCONNECT, lambda: self.send(CMD_DISCONNECT))):
             try:
-                self.send(cmd)
+                fn()
             except DeployError as exc:
-                log.error("WSG-50 close: %s", exc)
+                log.error("WSG-50 close (command 0x%02X): %s", cmd, exc)
         self.sock.close()
         self.sock = None
 
