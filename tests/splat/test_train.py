@@ -115,9 +115,12 @@ def test_bad_inputs(problem):
 
 
 def test_session_views_and_masks(tmp_path, rng):
-    """A hand-made session folder (two scan frames, one demo) -> views, masks, resized intrinsics."""
+    """A hand-made session folder in UMI's layout (raw_video.mp4 + CSV with a lost row) -> views, masks, resized
+    intrinsics."""
+    pytest.importorskip("imageio_ffmpeg")
     from umi_aug.camera import gopro_intrinsics_2_7k, save_umi_intrinsics_json
     from umi_aug.data import CameraTrajectory, write_camera_trajectory_csv
+    from umi_aug.data.video import VideoWriter
     from umi_aug.splat.train_session import loss_mask, session_views
 
     intr = gopro_intrinsics_2_7k().scaled(64, 48)
@@ -125,10 +128,11 @@ def test_session_views_and_masks(tmp_path, rng):
     (root / "calibration").mkdir(parents=True)
     save_umi_intrinsics_json(intr, root / "calibration" / "gopro_intrinsics_64x48.json")
     for seq, csv, n in (("mapping", "mapping_camera_trajectory.csv", 3), ("demo_a", "camera_trajectory.csv", 6)):
-        d = root / "demos" / seq / "images"
+        d = root / "demos" / seq
         d.mkdir(parents=True)
-        for k in range(n):
-            cv2.imwrite(str(d / f"{k:06d}.png"), rng.integers(0, 256, (48, 64, 3)).astype(np.uint8))
+        with VideoWriter(d / "raw_video.mp4", 64, 48, 60.0) as wr:
+            for k in range(n):
+                wr.write(rng.integers(0, 256, (48, 64, 3)).astype(np.uint8))
         T = np.repeat(np.eye(4)[None], n, 0)
         T[:, 0, 3] = np.arange(n) * 0.1
         lost = np.zeros(n, bool)
