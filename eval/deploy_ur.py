@@ -1,0 +1,69 @@
+"""Run a policy on a real UR arm (ur-rtde) with a WSG-50 and a UVC camera — a Hydra app.
+
+    python eval/deploy_ur.py robot=ur5e checkpoint=PATH out_dir=deploy_runs/try1
+    python eval/deploy_ur.py robot=ur5e policy=reach out_dir=deploy_runs/reach   # scripted reach, no checkpoint
+    python eval/deploy_ur.py robot=ur5e checkpoint=PATH dry_run=true            # nothing is sent to the robot
+    python eval/deploy_ur.py --cfg job                                          # print the composed config
+
+Writes ``out_dir/{episode.zarr.zip, episode.mp4, tcp_commanded_vs_reached.png, timing.json, deploy_ur.log}``.
+Ctrl-C stops the robot. A safety stop prints one message and exits with status 3. See ``eval/README.md``.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
+
+
+def _log_to_file(out_dir: Path) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    fh = logging.FileHandler(out_dir / "deploy_ur.log")
+    fh.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s"))
+    root.addHandler(fh)
+    root.setLevel(logging.INFO)
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="deploy_ur")
+def main(cfg: DictConfig) -> None:
+    from umi_aug.deploy.app import run_deploy
+    from umi_aug.deploy.safety import SafetyStop
+    from umi_aug.errors import UmiAugError
+    from umi_aug.runtime import configure_threads
+
+    c = OmegaConf.to_container(cfg, resolve=True)
+    out_dir = Path(c.get("out_dir") or "deploy_runs/latest")
+    c["out_dir"] = str(out_dir)
+    _log_to_file(out_dir)
+    configure_threads(1)
+    try:
+        s = run_deploy(c)
+    except SafetyStop as exc:
+        print(f"safety stop (robot halted): {exc}", file=sys.stderr)
+        sys.exit(3)
+    except UmiAugError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    lat, per = s.get("obs_to_action_latency", {}), s.get("control_period", {})
+    print(f"{s['cycles']} cycles, stop: {s['stop_reason']}; obs→action latency p50 {lat.get('p50_ms', float('nan')):.1f}"
+          f" ms p99 {lat.get('p99_ms', float('nan')):.1f} ms; control period p50 {per.get('p50_ms', float('nan')):.2f}"
+          f" ms p99 {per.get('p99_ms', float('nan')):.2f} ms" +
+          (f"; final error {1000 * s['final_error_m']:.1f} mm" if "final_error_m" in s else "") + f"; {out_dir}")
+
+
+def _policy_override(argv: list[str]) -> list[str]:
+    """``policy=NAME`` → ``deploy_policy=NAME`` (``configs/policy/`` is the training network group)."""
+    return ["deploy_policy=" + a[len("policy="):] if a.startswith("policy=") else a for a in argv]
+
+
+if __name__ == "__main__":
+    sys.argv[1:] = _policy_override(sys.argv[1:])
+    main()

@@ -1,0 +1,117 @@
+"""Assemble and run one deployment episode from a config mapping (what ``eval/deploy_ur.py`` calls).
+
+Config keys (``configs/deploy_ur.yaml`` + ``configs/robot/*.yaml`` + ``configs/deploy_policy/*.yaml``):
+``robot.{robot,gripper,camera,safety}``, ``policy.{kind,...}``, ``checkpoint``, ``out_dir``, ``dry_run``, ``dt``,
+``steps_per_inference``, ``max_duration``, ``start_delay``, ``n_cycles``, ``device``, ``reach_tolerance_m``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from umi_aug.deploy.camera import CameraConfig, UVCCamera
+from umi_aug.deploy.clock import MonotonicClock
+from umi_aug.deploy.interpolator import pose_distance
+from umi_aug.deploy.policies import ReachPolicy
+from umi_aug.deploy.recorder import EpisodeRecorder
+from umi_aug.deploy.runner import ObsSpec, PolicyRunner, RunnerConfig
+from umi_aug.deploy.safety import SafetyLimits
+from umi_aug.deploy.ur_rtde import URConfig, URRTDERobot
+from umi_aug.deploy.wsg50 import WSG50Gripper, WSGConfig
+from umi_aug.errors import DeployError
+
+__all__ = ["run_deploy"]
+
+log = logging.getLogger(__name__)
+
+RUN_KEYS = {"robot", "policy", "checkpoint", "out_dir", "dry_run", "dt", "steps_per_inference", "max_duration",
+            "start_delay", "n_cycles", "device", "reach_tolerance_m"}
+
+
+def _camera_cfg(m: Mapping[str, Any]) -> CameraConfig:
+    known = set(CameraConfig.__dataclass_fields__)
+    extra = sorted(set(m) - known)
+    if extra:
+        raise DeployError(f"robot.camera: unknown key(s) {extra}; known: {sorted(known)}")
+    return CameraConfig(**{k: (str(v) if k == "device" else v) for k, v in m.items()})
+
+
+def _build_policy(cfg: Mapping[str, Any], fps: float) -> tuple[Any, ObsSpec, float]:
+    p = dict(cfg.get("policy") or {})
+    kind = p.pop("kind", "checkpoint")
+    if kind == "reach":
+        pol = ReachPolicy(**p)
+        return pol, ObsSpec(1, 2, 3), float(cfg.get("dt") or pol.dt)
+    if kind == "checkpoint":
+        ckpt = cfg.get("checkpoint")
+        if not ckpt or not Path(ckpt).is_file():
+            raise DeployError(f"checkpoint={ckpt!r}: not a file; pass checkpoint=PATH (or policy=reach)")
+        from umi_aug.policy.inference import Policy
+
+        pol = Policy.from_checkpoint(ckpt, device=cfg.get("device") or "cpu")
+        spec = ObsSpec.from_policy(pol)
+        return pol, spec, float(cfg.get("dt") or spec.down_sample_steps / fps)
+    raise DeployError(f"policy.kind={kind!r}; expected 'checkpoint' or 'reach'")
+
+
+def run_deploy(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """Connect, run one episode, halt, record. Returns the summary (also ``out_dir/timing.json``).
+
+    Raises:
+        DeployError: bad config or a safety stop (after the robot was halted and the episode recorded).
+    """
+    extra = sorted(set(cfg) - RUN_KEYS)
+    if extra:
+        raise DeployError(f"deploy config: unknown key(s) {extra}; known: {sorted(RUN_KEYS)}")
+    rc = cfg.get("robot") or {}
+    unknown = sorted(set(rc) - {"robot", "gripper", "camera", "safety"})
+    if unknown:
+        raise DeployError(f"robot config: unknown block(s) {unknown}; expected robot, gripper, camera, safety")
+    ur = URConfig.from_mapping(rc.get("robot") or {}, "robot.robot")
+    wsg = WSGConfig.from_mapping(rc.get("gripper") or {}, "robot.gripper")
+    cam_cfg = _camera_cfg(rc.get("camera") or {})
+    limits = SafetyLimits.from_mapping(rc.get("safety") or {}, "robot.safety")
+    policy, spec, dt = _build_policy(cfg, cam_cfg.fps)
+    run_cfg = RunnerConfig(dt=dt, steps_per_inference=int(cfg.get("steps_per_inference", 6)),
+                           robot_action_latency=ur.action_latency, gripper_action_latency=wsg.action_latency,
+                           frame_latency=1.0 / cam_cfg.fps, start_delay=float(cfg.get("start_delay", 1.0)),
+                           max_duration=float(cfg.get("max_duration", 60.0)), dry_run=bool(cfg.get("dry_run")))
+    out_dir = Path(cfg.get("out_dir") or "deploy_runs/latest")
+    camera, gripper, robot = UVCCamera(cam_cfg), WSG50Gripper(wsg), URRTDERobot(ur)
+    started: list[Any] = []
+    summary: dict[str, Any] = {"dry_run": run_cfg.dry_run, "dt": dt, "policy": type(policy).__name__}
+    try:
+        for dev in (camera, gripper, robot):
+            dev.start()
+            started.append(dev)
+        rec = EpisodeRecorder(robot, gripper, camera)
+        done = None
+        if isinstance(policy, ReachPolicy):
+            tol = float(cfg.get("reach_tolerance_m", 0.005))
+
+            def done(c):  # noqa: ANN001 - CycleLog
+                return pose_distance(c.tcp_pose, policy.target)[0] < tol
+
+        runner = PolicyRunner(policy, robot, gripper, camera, MonotonicClock(), run_cfg, limits, spec, rec.on_cycle)
+        try:
+            runner.run(n_cycles=cfg.get("n_cycles"), done=done)
+        finally:
+            summary["stop_reason"] = runner.stop_reason
+            summary["cycles"] = len(runner.cycles)
+            if isinstance(policy, ReachPolicy) and runner.cycles:
+                final = robot.get_states(1)["tcp_pose"][-1] if robot in started else runner.cycles[-1].tcp_pose
+                dpos, drot = pose_distance(final, policy.target)
+                summary["final_error_m"], summary["final_error_rad"] = dpos, drot
+            summary.update(rec.save(out_dir, fps=1.0 / (dt * run_cfg.steps_per_inference), extra=summary))
+    finally:
+        for dev in reversed(started):
+            try:
+                dev.stop()
+            except Exception as exc:  # noqa: BLE001
+                log.error("stopping %s failed: %s", type(dev).__name__, exc)
+    summary["out_dir"] = str(out_dir)
+    return summary

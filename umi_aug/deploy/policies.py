@@ -1,0 +1,41 @@
+"""Policies the runner can drive besides a trained checkpoint (``Policy.from_checkpoint``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from umi_aug.deploy.interpolator import pose_distance
+from umi_aug.errors import DeployError
+from umi_aug.geometry.interp import interpolate_pose
+from umi_aug.geometry.se3 import pos_rotvec_to_pose, pose_to_pos_rotvec
+
+__all__ = ["ReachPolicy"]
+
+
+class ReachPolicy:
+    """Scripted: move the TCP in a straight line (slerped rotation) to ``target`` [6] (base frame, m / rotvec)
+    at ``speed`` m/s and ``rot_speed`` rad/s, gripper to ``gripper_width``; returns ``[n_steps, 7]`` absolute
+    actions spaced ``dt`` like a trained policy's chunk (the first is the current step)."""
+
+    def __init__(self, target: list[float], speed: float = 0.05, rot_speed: float = 0.3, dt: float = 0.1,
+                 n_steps: int = 8, gripper_width: float = 0.05) -> None:
+        self.target = np.asarray(target, np.float64).reshape(-1)
+        if self.target.shape != (6,) or not np.isfinite(self.target).all():
+            raise DeployError(f"policy.target must be 6 finite numbers [x, y, z, rx, ry, rz], got {target}")
+        if not (speed > 0 and rot_speed > 0 and dt > 0 and n_steps >= 1):
+            raise DeployError(f"reach policy: speed, rot_speed, dt must be > 0 and n_steps >= 1")
+        self.speed, self.rot_speed, self.dt, self.n_steps, self.width = speed, rot_speed, dt, n_steps, gripper_width
+
+    def reset(self) -> None:
+        pass
+
+    def predict_action(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        cur = np.concatenate([np.asarray(obs["robot0_eef_pos"])[-1], np.asarray(obs["robot0_eef_rot_axis_angle"])[-1]])
+        dpos, drot = pose_distance(cur, self.target)
+        dur = max(dpos / self.speed, drot / self.rot_speed, 1e-9)
+        s = np.clip(np.arange(self.n_steps) * self.dt / dur, 0.0, 1.0)
+        T = interpolate_pose(pos_rotvec_to_pose(cur), pos_rotvec_to_pose(self.target), s)
+        out = np.empty((self.n_steps, 7))
+        out[:, :6] = pose_to_pos_rotvec(T)
+        out[:, 6] = self.width
+        return out
