@@ -18,7 +18,7 @@ class ReachPolicy:
     actions spaced ``dt`` like a trained policy's chunk (the first is the current step)."""
 
     def __init__(self, target: list[float], speed: float = 0.05, rot_speed: float = 0.3, dt: float = 0.1,
-                 n_steps: int = 8, gripper_width: float = 0.05) -> None:
+                 n_steps: int = 16, gripper_width: float = 0.05) -> None:
         self.target = np.asarray(target, np.float64).reshape(-1)
         if self.target.shape != (6,) or not np.isfinite(self.target).all():
             raise DeployError(f"policy.target must be 6 finite numbers [x, y, z, rx, ry, rz], got {target}")
