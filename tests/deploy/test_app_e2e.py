@@ -78,3 +78,36 @@ def test_dry_run_sends_no_motion(tmp_path, video):
     assert len(servo) > 10 and np.allclose(servo, fake_rtde.POSE0)  # held the start pose throughout
     assert (tmp_path / "run" / "tcp_commanded_vs_reached.png").exists()
     srv.thread.join(5)
+
+
+@pytest.mark.slow
+def test_command_outside_workspace_halts_and_still_records(tmp_path, video):
+    from umi_aug.deploy.safety import SafetyStop
+
+    srv = FakeWSG()
+    log = tmp_path / "calls.jsonl"
+    cfg = _cfg(tmp_path, video, srv.port, log)
+    cfg["policy"]["target"] = [0.4, 0.3, 0.28, np.pi, 0.0, 0.0]  # y = 0.3 > workspace_max y = 0.2
+    cfg["policy"]["speed"] = 0.2
+    with pytest.raises(SafetyStop, match=r"outside the workspace box"):
+        run_deploy(cfg)
+    calls = [json.loads(line) for line in open(log)]
+    assert [c[0] for c in calls][-4:] == ["servoStop", "stopScript", "control.disconnect", "receive.disconnect"]
+    servo_y = np.array([c[2][1] for c in calls if c[0] == "servoL"])
+    assert servo_y.max() <= 0.2 + 1e-9  # never commanded outside the box
+    assert (tmp_path / "run" / "timing.json").exists()
+    srv.thread.join(5)
+
+
+def test_cli_bad_checkpoint_is_one_clear_error(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    r = subprocess.run([sys.executable, str(root / "eval" / "deploy_ur.py"), "checkpoint=/nonexistent.ckpt",
+                        f"out_dir={tmp_path / 'o'}", f"hydra.run.dir={tmp_path / 'h'}"],
+                       capture_output=True, text=True, timeout=120, cwd=root)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == ["error: checkpoint='/nonexistent.ckpt': not a file; pass "
+                                             "checkpoint=PATH (or policy=reach)"]
