@@ -109,6 +109,6 @@ def test_gripper_process_position_control_in_metres():
 
 def test_gripper_process_reports_connection_failure():
     g = WSG50Gripper(WSGConfig(gripper_ip="127.0.0.1", gripper_port=1), connect_timeout_s=60)
-    with pytest.raises(SafetyStop, match="gripper stopped: WSG-50 at 127.0.0.1:1: cannot connect"):
+    with pytest.raises(SafetyStop, match="gripper WSG-50 127.0.0.1:1 stopped: WSG-50 at 127.0.0.1:1: cannot connect"):
         g.start()
     g.stop()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import importlib
 import logging
-import multiprocessing as mp
 import queue
 import time
 from dataclasses import dataclass, field, fields
@@ -23,6 +22,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from umi_aug.deploy.clock import Clock, MonotonicClock
+from umi_aug.deploy.device_process import DeviceProcess
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
 from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
@@ -189,7 +189,7 @@ class URServoLoop:
             rc.waitPeriod(t_period)
 
 
-def _process_main(cfg: URConfig, commands: Any, state: SharedStateBuffer, stop_event: Any, heartbeat: Any,
+def _process_main(cfg: URConfig, heartbeat: Any, commands: Any, state: SharedStateBuffer, stop_event: Any,
                   errors: Any) -> None:
     try:
         URServoLoop(cfg, commands, state, stop_event, heartbeat).run()
@@ -197,38 +197,21 @@ def _process_main(cfg: URConfig, commands: Any, state: SharedStateBuffer, stop_e
         errors.put(str(exc) if isinstance(exc, DeployError) else f"{type(exc).__name__}: {exc}")
 
 
-class URRTDERobot:
+class URRTDERobot(DeviceProcess):
     """:class:`~umi_aug.deploy.interfaces.RobotInterface` backed by :class:`URServoLoop` in a child process.
 
     Times are ``time.monotonic`` seconds (one clock for all processes of the machine).
     """
 
     def __init__(self, cfg: URConfig, ctx: Any = None, capacity: int = 2048, connect_timeout_s: float = 10.0) -> None:
+        super().__init__(f"robot controller {cfg.robot_ip}", STATE_FIELDS, capacity, ctx, connect_timeout_s)
         self.cfg = cfg
-        self._ctx = ctx or mp.get_context("spawn")
-        self.state = SharedStateBuffer(STATE_FIELDS, capacity, self._ctx)
-        self._cmd = self._ctx.Queue()
-        self._errors = self._ctx.Queue()
-        self._stop = self._ctx.Event()
         self._heartbeat = self._ctx.Value("d", time.monotonic(), lock=False)
-        self._proc: Any = None
-        self._error: str | None = None
-        self.connect_timeout_s = connect_timeout_s
 
     def start(self) -> None:
         """Start the controller process and wait for its first state."""
         self._heartbeat.value = time.monotonic() + self.connect_timeout_s  # grace while connecting
-        self._proc = self._ctx.Process(target=_process_main, name="ur_rtde", daemon=True,
-                                       args=(self.cfg, self._cmd, self.state, self._stop, self._heartbeat,
-                                             self._errors))
-        self._proc.start()
-        deadline = time.monotonic() + self.connect_timeout_s
-        while self.state.count == 0:
-            self.check_ok()
-            if time.monotonic() > deadline:
-                self.stop()
-                raise DeployError(f"robot {self.cfg.robot_ip}: no state within {self.connect_timeout_s} s")
-            time.sleep(0.01)
+        self._start_process(_process_main, self.cfg, self._heartbeat)
 
     def heartbeat(self) -> None:
         self._heartbeat.value = time.monotonic()
@@ -242,25 +225,5 @@ class URRTDERobot:
         self._cmd.put(("waypoint", np.asarray(pose, float).reshape(6), float(t)))
 
     def check_ok(self) -> None:
-        if self._error is None:
-            try:
-                self._error = self._errors.get_nowait()
-            except queue.Empty:
-                pass
-        if self._error is not None:
-            raise SafetyStop(f"robot controller stopped: {self._error}")
-        if self._proc is not None and not self._proc.is_alive():
-            raise SafetyStop(f"robot controller process exited (code {self._proc.exitcode})")
+        super().check_ok()
         self.heartbeat()
-
-    def stop(self) -> None:
-        """Ask the loop to stop (it runs servoStop/stopScript/disconnect) and wait for the process."""
-        if self._proc is None:
-            return
-        self._stop.set()
-        self._proc.join(timeout=5.0)
-        if self._proc.is_alive():
-            log.error("ur_rtde process did not stop in 5 s; terminating it")
-            self._proc.terminate()
-            self._proc.join(timeout=2.0)
-        self._proc = None

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import enum
 import logging
-import multiprocessing as mp
 import queue
 import socket
 import struct
@@ -24,8 +23,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from umi_aug.deploy.device_process import DeviceProcess
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
-from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
 from umi_aug.errors import DeployError
 
@@ -271,54 +270,17 @@ def _gripper_main(cfg: WSGConfig, commands: Any, state: SharedStateBuffer, stop_
         drv.close()
 
 
-class WSG50Gripper:
+class WSG50Gripper(DeviceProcess):
     """:class:`~umi_aug.deploy.interfaces.GripperInterface` for a WSG-50 (own process, ``frequency`` Hz)."""
 
     def __init__(self, cfg: WSGConfig, ctx: Any = None, connect_timeout_s: float = 10.0) -> None:
+        super().__init__(f"gripper WSG-50 {cfg.gripper_ip}:{cfg.gripper_port}",
+                         {"timestamp": 1, "width": 1, "velocity": 1, "force": 1, "target": 1}, 256, ctx,
+                         connect_timeout_s)
         self.cfg = cfg
-        self._ctx = ctx or mp.get_context("spawn")
-        self.state = SharedStateBuffer({"timestamp": 1, "width": 1, "velocity": 1, "force": 1, "target": 1}, 256,
-                                       self._ctx)
-        self._cmd, self._errors, self._stop = self._ctx.Queue(), self._ctx.Queue(), self._ctx.Event()
-        self._proc: Any = None
-        self._error: str | None = None
-        self.connect_timeout_s = connect_timeout_s
 
     def start(self) -> None:
-        self._proc = self._ctx.Process(target=_gripper_main, name="wsg50", daemon=True,
-                                       args=(self.cfg, self._cmd, self.state, self._stop, self._errors))
-        self._proc.start()
-        deadline = time.monotonic() + self.connect_timeout_s
-        while self.state.count == 0:
-            self.check_ok()
-            if time.monotonic() > deadline:
-                self.stop()
-                raise DeployError(f"WSG-50 {self.cfg.gripper_ip}: no state within {self.connect_timeout_s} s")
-            time.sleep(0.01)
-
-    def get_states(self, n: int) -> dict[str, np.ndarray]:
-        return self.state.latest(n)
+        self._start_process(_gripper_main, self.cfg)
 
     def schedule_waypoint(self, width: float, t: float) -> None:
         self._cmd.put(("waypoint", float(width), float(t)))
-
-    def check_ok(self) -> None:
-        if self._error is None:
-            try:
-                self._error = self._errors.get_nowait()
-            except queue.Empty:
-                pass
-        if self._error is not None:
-            raise SafetyStop(f"gripper stopped: {self._error}")
-        if self._proc is not None and not self._proc.is_alive():
-            raise SafetyStop(f"gripper process exited (code {self._proc.exitcode})")
-
-    def stop(self) -> None:
-        if self._proc is None:
-            return
-        self._stop.set()
-        self._proc.join(timeout=5.0)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(timeout=2.0)
-        self._proc = None
