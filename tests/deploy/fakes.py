@@ -6,7 +6,6 @@ import numpy as np
 
 from umi_aug.deploy.clock import FakeClock
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
-from umi_aug.deploy.safety import SafetyStop
 
 
 class KinematicRobot:

@@ -11,8 +11,6 @@ import logging
 from pathlib import Path
 from typing import Any, Mapping
 
-import numpy as np
-
 from umi_aug.deploy.camera import CameraConfig, UVCCamera
 from umi_aug.deploy.clock import MonotonicClock
 from umi_aug.deploy.interpolator import pose_distance
@@ -22,6 +20,7 @@ from umi_aug.deploy.runner import ObsSpec, PolicyRunner, RunnerConfig
 from umi_aug.deploy.safety import SafetyLimits
 from umi_aug.deploy.ur_rtde import URConfig, URRTDERobot
 from umi_aug.deploy.wsg50 import WSG50Gripper, WSGConfig
+from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
 
 __all__ = ["run_deploy"]
@@ -33,10 +32,7 @@ RUN_KEYS = {"robot", "policy", "checkpoint", "out_dir", "dry_run", "dt", "steps_
 
 
 def _camera_cfg(m: Mapping[str, Any]) -> CameraConfig:
-    known = set(CameraConfig.__dataclass_fields__)
-    extra = sorted(set(m) - known)
-    if extra:
-        raise DeployError(f"robot.camera: unknown key(s) {extra}; known: {sorted(known)}")
+    reject_unknown_keys(m, CameraConfig.__dataclass_fields__, "robot.camera")
     return CameraConfig(**{k: (str(v) if k == "device" else v) for k, v in m.items()})
 
 

@@ -13,6 +13,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from umi_aug.deploy.interpolator import pose_distance
+from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
 from umi_aug.geometry.so3 import so3_exp
 
@@ -49,10 +50,7 @@ class SafetyLimits:
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], where: str = "safety") -> "SafetyLimits":
         """Build from a config mapping; unknown keys and bad values raise :class:`DeployError` naming them."""
-        known = set(cls.__dataclass_fields__)
-        extra = sorted(set(m) - known)
-        if extra:
-            raise DeployError(f"{where}: unknown key(s) {extra}; known: {sorted(known)}")
+        reject_unknown_keys(m, cls.__dataclass_fields__, where)
         lim = cls(**{k: (list(v) if k.startswith("workspace") else float(v)) for k, v in m.items()})
         lo, hi = np.asarray(lim.workspace_min, float), np.asarray(lim.workspace_max, float)
         if lo.shape != (3,) or hi.shape != (3,) or not (lo < hi).all():

@@ -16,7 +16,7 @@ import importlib
 import logging
 import queue
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 import numpy as np
@@ -26,6 +26,7 @@ from umi_aug.deploy.device_process import DeviceProcess
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
 from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
+from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
 
 __all__ = ["URConfig", "URServoLoop", "URRTDERobot", "SAFETY_MODES", "STATE_FIELDS"]
@@ -78,10 +79,7 @@ class URConfig:
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], where: str = "robot") -> "URConfig":
         """Validated config; one :class:`DeployError` naming the key and value otherwise."""
-        known = {f.name for f in fields(cls)}
-        extra = sorted(set(m) - known)
-        if extra:
-            raise DeployError(f"{where}: unknown key(s) {extra}; known: {sorted(known)}")
+        reject_unknown_keys(m, cls.__dataclass_fields__, where)
         c = cls(**{k: (list(v) if k in ("joints_init", "rtde_modules") and v is not None else v)
                    for k, v in m.items()})
         if c.robot_type not in CONTROL_RATE_HZ:

@@ -18,14 +18,13 @@ import queue
 import socket
 import struct
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Mapping
-
-import numpy as np
 
 from umi_aug.deploy.device_process import DeviceProcess
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
 from umi_aug.deploy.shared_state import SharedStateBuffer
+from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
 
 __all__ = ["crc16", "encode_message", "decode_stream", "Status", "WSG50Driver", "WSGConfig", "WSG50Gripper"]
@@ -225,10 +224,7 @@ class WSGConfig:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], where: str = "gripper") -> "WSGConfig":
-        known = {f.name for f in fields(cls)}
-        extra = sorted(set(m) - known)
-        if extra:
-            raise DeployError(f"{where}: unknown key(s) {extra}; known: {sorted(known)}")
+        reject_unknown_keys(m, cls.__dataclass_fields__, where)
         c = cls(**dict(m))
         if not (0 < c.frequency <= 100 and c.max_speed > 0):
             raise DeployError(f"{where}: frequency must be in (0, 100] Hz and max_speed > 0, got {c.frequency}, "
