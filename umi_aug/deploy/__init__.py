@@ -7,5 +7,13 @@ Stage order: sits above :mod:`umi_aug.policy` and uses only public APIs of lower
 * :mod:`~umi_aug.deploy.safety` — workspace box, table-height clamp, step length, NaN, stale observations;
 * :mod:`~umi_aug.deploy.shared_state` — a shared-memory ring buffer of timestamped states between processes;
 * :mod:`~umi_aug.deploy.runner` — observation alignment, latency-compensated action scheduling;
-* :mod:`~umi_aug.deploy.ur_rtde` — the ur-rtde servoL controller (its own process).
+* :mod:`~umi_aug.deploy.interfaces` — robot / gripper / camera protocols the runner talks to;
+* :mod:`~umi_aug.deploy.ur_rtde` — the ur-rtde servoL controller (its own process);
+* :mod:`~umi_aug.deploy.wsg50` — WSG-50 binary protocol driver and gripper process (metres);
+* :mod:`~umi_aug.deploy.camera` — UVC capture via OpenCV, receive timestamps, UMI's policy-image transform;
+* :mod:`~umi_aug.deploy.device_process` — the child-process wrapper shared by robot and gripper;
+* :mod:`~umi_aug.deploy.policies` — scripted policies (reach); :mod:`~umi_aug.deploy.recorder` — zarr + mp4 +
+  plot + timing; :mod:`~umi_aug.deploy.app` — assembles one episode from the config (``eval/deploy_ur.py``).
+
+``ur-rtde`` is the ``deploy`` extra (``pip install 'umi-aug[deploy]'``); it is imported only inside the controller.
 """
