@@ -90,6 +90,20 @@ def test_observation_alignment_interpolates_robot_to_camera_timestamps():
     assert obs["robot0_gripper_width"].shape == (2, 1)
 
 
+def test_n_action_steps_is_passed_to_the_policy():
+    r, clock, robot, grip, cam, pol = make(n_action_steps=12)
+    asked = []
+    orig = pol.predict_action
+
+    def predict(obs, n_steps=None):
+        asked.append(n_steps)
+        return orig(obs)[:n_steps]
+
+    pol.predict_action = predict
+    logs = r.run(n_cycles=2)
+    assert asked == [12, 12] and all(len(c.commands) + c.n_dropped == 12 for c in logs)
+
+
 def test_dry_run_sends_nothing_but_logs_commands():
     r, clock, robot, grip, cam, pol = make(dry_run=True)
     logs = r.run(n_cycles=2)

@@ -72,10 +72,12 @@ def run_deploy(cfg: Mapping[str, Any]) -> dict[str, Any]:
     cam_cfg = _camera_cfg(rc.get("camera") or {})
     limits = SafetyLimits.from_mapping(rc.get("safety") or {}, "robot.safety")
     policy, spec, dt = _build_policy(cfg, cam_cfg.fps)
+    task = getattr(policy, "task", None)  # a checkpoint: the whole predicted horizon, as UMI's action_pred
     run_cfg = RunnerConfig(dt=dt, steps_per_inference=int(cfg.get("steps_per_inference", 6)),
                            robot_action_latency=ur.action_latency, gripper_action_latency=wsg.action_latency,
                            frame_latency=1.0 / cam_cfg.fps, start_delay=float(cfg.get("start_delay", 1.0)),
-                           max_duration=float(cfg.get("max_duration", 60.0)), dry_run=bool(cfg.get("dry_run")))
+                           max_duration=float(cfg.get("max_duration", 60.0)), dry_run=bool(cfg.get("dry_run")),
+                           n_action_steps=int(task.action_horizon) if task is not None else None)
     out_dir = Path(cfg.get("out_dir") or "deploy_runs/latest")
     camera, gripper, robot = UVCCamera(cam_cfg), WSG50Gripper(wsg), URRTDERobot(ur)
     started: list[Any] = []

@@ -70,6 +70,7 @@ class RunnerConfig:
     start_delay: float = 1.0
     max_duration: float = 60.0
     dry_run: bool = False
+    n_action_steps: int | None = None  # passed as predict_action(n_steps=...); UMI's eval uses the whole horizon
 
     def __post_init__(self) -> None:
         if not (self.dt > 0 and self.steps_per_inference >= 1 and self.max_duration > 0):
@@ -164,7 +165,8 @@ class PolicyRunner:
         self.robot.check_ok()
         self.gripper.check_ok()
         obs, obs_ts = self.get_obs()
-        action = np.asarray(self.policy.predict_action(obs), np.float64)
+        kw = {} if cfg.n_action_steps is None else {"n_steps": int(cfg.n_action_steps)}
+        action = np.asarray(self.policy.predict_action(obs, **kw), np.float64)
         if action.ndim != 2 or action.shape[1] < 7 or len(action) < 1:
             raise DeployError(f"policy returned actions of shape {action.shape}; expected [n, 7]")
         now = self.clock.now()
