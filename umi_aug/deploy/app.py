@@ -28,7 +28,7 @@ __all__ = ["run_deploy"]
 log = logging.getLogger(__name__)
 
 RUN_KEYS = {"robot", "policy", "checkpoint", "out_dir", "dry_run", "dt", "steps_per_inference", "max_duration",
-            "start_delay", "n_cycles", "device", "reach_tolerance_m"}
+            "start_delay", "n_cycles", "device", "reach_tolerance_m", "action_exec_latency"}
 
 
 def _camera_cfg(m: Mapping[str, Any]) -> CameraConfig:
@@ -75,6 +75,7 @@ def run_deploy(cfg: Mapping[str, Any]) -> dict[str, Any]:
     task = getattr(policy, "task", None)  # a checkpoint: the whole predicted horizon, as UMI's action_pred
     run_cfg = RunnerConfig(dt=dt, steps_per_inference=int(cfg.get("steps_per_inference", 6)),
                            robot_action_latency=ur.action_latency, gripper_action_latency=wsg.action_latency,
+                           action_exec_latency=float(cfg.get("action_exec_latency", 0.01)),
                            frame_latency=1.0 / cam_cfg.fps, start_delay=float(cfg.get("start_delay", 1.0)),
                            max_duration=float(cfg.get("max_duration", 60.0)), dry_run=bool(cfg.get("dry_run")),
                            n_action_steps=int(task.action_horizon) if task is not None else None)

@@ -5,8 +5,10 @@ Per inference cycle:
 1. observations: the latest camera frames at ``t_last − arange(H)[::-1]·down_sample/fps`` and robot TCP pose and
    gripper width interpolated to the same timestamps (UMI ``get_obs``); each stream's age is checked;
 2. ``policy.predict_action(obs)`` → absolute ``[n, 7]`` (pos, rotvec, gripper width);
-3. action ``k`` is due at ``t_obs_last + k·dt``; actions due before ``now + action_exec_latency`` are dropped
-   (if none is left, the last action goes to the next ``dt`` slot);
+3. action ``k`` is due at ``t_obs_last + k·dt``; actions due before ``now + action_exec_latency +
+   max(action latencies)`` are dropped (UMI drops at ``now + action_exec_latency`` and the controller then ignores
+   the ones whose compensated time is past); if none is left, the last action goes to the next ``dt`` slot after
+   that lead;
 4. every kept command passes :func:`~umi_aug.deploy.safety.check_command`, then is scheduled at
    ``t − robot_action_latency`` / ``t − gripper_action_latency`` (latency compensation) — or only logged in
    dry-run mode;
@@ -170,8 +172,10 @@ class PolicyRunner:
         if action.ndim != 2 or action.shape[1] < 7 or len(action) < 1:
             raise DeployError(f"policy returned actions of shape {action.shape}; expected [n, 7]")
         now = self.clock.now()
-        kept, due, n_drop = select_actions(action[:, :7], float(obs_ts[-1]), now, cfg.dt, cfg.action_exec_latency,
-                                           t_start)
+        # an action whose latency-compensated time is already past would be ignored by the controller's
+        # interpolator (silently, in UMI): drop it here, where it is counted
+        lead = cfg.action_exec_latency + max(cfg.robot_action_latency, cfg.gripper_action_latency)
+        kept, due, n_drop = select_actions(action[:, :7], float(obs_ts[-1]), now, cfg.dt, lead, t_start)
         cur = np.concatenate([obs["robot0_eef_pos"][-1], obs["robot0_eef_rot_axis_angle"][-1]])
         safe = np.empty_like(kept)
         ref = cur

@@ -15,6 +15,7 @@ from __future__ import annotations
 import importlib
 import logging
 import queue
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Mapping
@@ -53,8 +54,8 @@ class URConfig:
         obs_latency: subtracted from state receive times (s). action_latency: used by the runner (s).
         lookahead_time: servoL lookahead, [0.03, 0.2] s. gain: servoL gain, [100, 2000].
         max_pos_speed, max_rot_speed: interpolator limits (m/s, rad/s).
-        watchdog_s: stop when the runner has not sent a heartbeat for this long (s); must exceed one
-            inference cycle (``steps_per_inference·dt``).
+        watchdog_s: stop when the runner process has not beaten the heartbeat for this long (s): it is dead
+            or frozen (a heartbeat thread beats every 0.1 s; a slow policy does not trip it).
         joints_init: optional start joints (deg) reached with moveJ before servoing.
         rtde_modules: module names providing ``RTDEControlInterface`` / ``RTDEReceiveInterface``.
     """
@@ -68,7 +69,7 @@ class URConfig:
     gain: float = 300.0
     max_pos_speed: float = 0.25
     max_rot_speed: float = 0.6
-    watchdog_s: float = 2.0
+    watchdog_s: float = 1.0
     joints_init: list[float] | None = None
     rtde_modules: list[str] = field(default_factory=lambda: ["rtde_control", "rtde_receive"])
 
@@ -205,11 +206,25 @@ class URRTDERobot(DeviceProcess):
         super().__init__(f"robot controller {cfg.robot_ip}", STATE_FIELDS, capacity, ctx, connect_timeout_s)
         self.cfg = cfg
         self._heartbeat = self._ctx.Value("d", time.monotonic(), lock=False)
+        self._beating = threading.Event()
+        self._beat_thread: threading.Thread | None = None
 
     def start(self) -> None:
-        """Start the controller process and wait for its first state."""
+        """Start the controller process, wait for its first state, then beat the heartbeat from a thread of
+        this process every 0.1 s (the watchdog catches a dead or frozen runner process, not a slow policy)."""
         self._heartbeat.value = time.monotonic() + self.connect_timeout_s  # grace while connecting
         self._start_process(_process_main, self.cfg, self._heartbeat)
+        self._beating.clear()
+        self._beat_thread = threading.Thread(target=self._beat, name="ur_rtde_heartbeat", daemon=True)
+        self._beat_thread.start()
+
+    def _beat(self) -> None:
+        while not self._beating.wait(0.1):
+            self.heartbeat()
+
+    def stop(self) -> None:
+        self._beating.set()
+        super().stop()
 
     def heartbeat(self) -> None:
         self._heartbeat.value = time.monotonic()
