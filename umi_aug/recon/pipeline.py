@@ -3,7 +3,7 @@
 ``reconstruct_session(session, out_dir)``:
 1. frames: the scan (every ``scan_stride``-th) and each demo's frames before the gripper first closes (every
    ``demo_stride``-th; the objects have not moved yet), decoded from the session's videos at most ``frame_width``
-   wide (UMI's SLAM runs at 960x720) into ``frames/`` (removed after SfM);
+   wide (UMI's SLAM runs at 960x720) into ``frames/`` (removed after SfM, with ``colmap/images``);
 2. SfM (:mod:`umi_aug.recon.sfm`, ``full`` or ``known_poses`` with the session's SLAM poses), then the Sim(3)
    alignment into the table-tag frame (:mod:`umi_aug.recon.align`);
 3. point filtering (track length, reprojection error) and clean-up (:mod:`umi_aug.recon.cloud`) →
@@ -154,7 +154,8 @@ def reconstruct_session(session: str | os.PathLike | SessionData, out_dir: str |
     mask = feature_mask(intr, gripper_mask)
     sfm = run_sfm(paths, names, intr, out / "colmap", cfg.sfm, sequence_lengths=lengths,
                   T_world_cam=T if valid.any() else None, pose_valid=valid, masks=mask)
-    shutil.rmtree(out / "frames", ignore_errors=True)
+    for scratch in (out / "frames", out / "colmap" / "images"):  # decoded frames + COLMAP's links to them
+        shutil.rmtree(scratch, ignore_errors=True)
     tm["sfm"] = time.perf_counter() - t
     if cfg.sfm.mode == "full" and valid.sum() < 3:
         raise ReconError(f"{sess.root}: full SfM needs metric poses of >= 3 frames to fix scale "
