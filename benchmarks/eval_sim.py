@@ -94,7 +94,7 @@ def main() -> None:
     state = configs["states"][0]
     env = SquareEnv(env_meta=configs["env_args"], image_size=None)
     probe = SceneProbe(env)
-    rows = [("expert (privileged, no images)", "—", "—", _measure(env, probe, ExpertEvalPolicy(), state, args.steps))]
+    rows = [("expert (no images)", "—", "—", _measure(env, probe, ExpertEvalPolicy(), state, args.steps))]
     for enc in args.encoders:
         for size in args.sizes:
             pol, n_params, k = _random_policy(enc, size)
@@ -102,8 +102,8 @@ def main() -> None:
             cam = WristFisheyeCamera(env.model, size)
             try:
                 _measure(env, probe, ev, state, 2, cam)  # warm-up (first inference, GL context)
-                rows.append((f"{enc} ({n_params / 1e6:.1f} M params, {k} denoising steps, "
-                             f"{ev.n_exec} actions/inference)", f"{size}²", str(ev.n_exec),
+                rows.append((f"{enc} ({n_params / 1e6:.0f} M, {k} den. steps, {ev.n_exec}/inference)", f"{size}²",
+                             str(ev.n_exec),
                              _measure(env, probe, ev, state, args.steps, cam)))
             finally:
                 cam.close()
@@ -119,7 +119,8 @@ def main() -> None:
         per_h = 3600.0 / (400 * r["total_ms"] / 1000.0)
         t.add_row(name, size, f"{ms['sim']:.1f}", f"{ms['render']:.1f}", f"{ms['policy']:.1f}", f"{ms['other']:.1f}",
                   f"{r['total_ms']:.1f}", f"{per_h:.0f}", f"{2 * per_h:.0f}", f"{r['total_ms'] / ref:.1f}")
-    Console().print(t)
+    console = Console(width=max(160, Console().width))
+    console.print(t)
     w = Table(title="Wilson 95 % interval vs number of configurations N (half-width, percentage points)")
     w.add_column("N", justify="right")
     for p in (0.5, 0.8, 0.95):
@@ -130,7 +131,7 @@ def main() -> None:
             lo, hi = wilson_interval(round(p * n), n)
             cells.append(f"±{50 * (hi - lo):.1f}  [{100 * lo:.1f}, {100 * hi:.1f}]")
         w.add_row(str(n), *cells)
-    Console().print(w)
+    console.print(w)
 
 
 if __name__ == "__main__":

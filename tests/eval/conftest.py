@@ -27,11 +27,11 @@ def square_env():
 
     if importlib.util.find_spec("robosuite") is None:  # not importorskip: MuJoCo must be imported via sim.gl
         pytest.skip("robosuite not installed (pip install 'umi-aug[robomimic]')")
-    from umi_aug.sim.square.env import SquareEnv
+    from umi_aug.eval.runner import _worker_state, load_eval_configs
 
-    env = SquareEnv(image_size=None)
-    yield env
-    env.close()
+    # the harness's own per-process env (shared with in-process run_eval calls: one env for the whole session)
+    spec = {"env_meta": load_eval_configs(CONFIGS_FILE)["env_args"], "key": "hold", "policy": "hold"}
+    yield _worker_state(spec)["env"]
 
 
 @pytest.fixture(scope="session")

@@ -134,19 +134,26 @@ def _build_policy(spec: dict[str, Any]):
 
 
 def _worker_state(spec: dict[str, Any]) -> dict[str, Any]:
-    """This process's env + policy (+ camera) for ``spec`` (built once)."""
-    key = spec["key"]
-    if _WORKER.get("key") != key:
-        for old in ("env",):
-            if old in _WORKER:
-                _WORKER[old].close()
+    """This process's env (+ probe, cameras; rebuilt only when the env_meta changes) and policy (rebuilt when the
+    policy spec changes)."""
+    import json
+
+    env_key = json.dumps(spec["env_meta"], sort_keys=True, default=str)
+    if _WORKER.get("env_key") != env_key:
+        if "env" in _WORKER:
+            _WORKER["env"].close()
         _WORKER.clear()
+        import contextlib
+        import io
+
         from umi_aug.eval.rollout import SceneProbe
         from umi_aug.sim.square.camera import WristFisheyeCamera
         from umi_aug.sim.square.env import SquareEnv
 
-        policy = _build_policy(spec)
-        env = SquareEnv(env_meta=spec["env_meta"], image_size=None)
+        chatter = io.StringIO()  # robosuite/robomimic print banners and macro warnings: keep them off the console
+        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
+            env = SquareEnv(env_meta=spec["env_meta"], image_size=None)
+        log.debug("environment created: %s", chatter.getvalue())
         cams: dict[int, Any] = {}
 
         def camera(size: int):
@@ -154,7 +161,10 @@ def _worker_state(spec: dict[str, Any]) -> dict[str, Any]:
                 cams[size] = WristFisheyeCamera(env.model, size)
             return cams[size]
 
-        _WORKER.update(key=key, env=env, probe=SceneProbe(env), policy=policy, camera=camera)
+        _WORKER.update(env_key=env_key, env=env, probe=SceneProbe(env), camera=camera)
+    if _WORKER.get("policy_key") != spec["key"]:
+        _WORKER["policy"] = _build_policy(spec)
+        _WORKER["policy_key"] = spec["key"]
     return _WORKER
 
 
