@@ -56,6 +56,24 @@ def test_a_same_size_edit_of_the_dataset_changes_the_key_and_reruns_the_stage(se
     assert len(runs) == 2
 
 
+def test_a_same_size_edit_of_a_plain_dataset_input_changes_its_fingerprint(tmp_path):
+    """Plain-dataset input (``umi-aug augment DATASET.zarr.zip``): the export and scene keys hash content, so an
+    in-place edit of the same size within the same second is seen (size + mtime was not)."""
+    import os
+
+    from umi_aug.augment.dataset_source import dataset_fingerprint
+
+    ds = tmp_path / "dataset.zarr.zip"
+    w = np.linspace(0.0, 0.08, 40)
+    _raw_zip_dataset(ds, w)
+    st1, fp1 = ds.stat(), dataset_fingerprint(ds)
+    w[7] += 0.01
+    _raw_zip_dataset(ds, w)
+    os.utime(ds, ns=(st1.st_atime_ns, st1.st_mtime_ns))  # same size, same mtime
+    assert ds.stat().st_size == st1.st_size
+    assert dataset_fingerprint(ds) != fp1
+
+
 def test_an_edited_intrinsics_file_changes_the_key(session):
     from umi_aug.augment.session_assets import session_fingerprint
 

@@ -26,7 +26,6 @@ with ONE error naming the key and episode before anything is computed.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import logging
 import os
@@ -270,15 +269,11 @@ def check_dataset(path: str | os.PathLike, image_size: int, inp: DatasetInput) -
 
 
 def dataset_fingerprint(path: str | os.PathLike) -> str:
-    """Hash of the dataset file/directory: size + modification time of every file (cheap; content changes of the
-    same size within one second are not seen)."""
-    p = Path(path)
-    h = hashlib.sha256()
-    files = [p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file())
-    for q in files:
-        st = q.stat()
-        h.update(f"{q.relative_to(p) if q != p else q.name}:{st.st_size}:{int(st.st_mtime)};".encode())
-    return h.hexdigest()[:16]
+    """Content hash of the dataset (:func:`umi_aug.data.fingerprint.content_fingerprint`: zip entries with their
+    CRC-32s, or a directory's files): an in-place edit of the same size changes it."""
+    from umi_aug.data.fingerprint import content_fingerprint
+
+    return content_fingerprint(path)
 
 
 def background_shell_points(T_world_cam: np.ndarray, n: int, radius: float, rng: np.random.Generator,
