@@ -565,7 +565,7 @@ def _finish(out: Path, work: Path, assets: SessionAssets, key: str, jobs, resume
 
 
 def _pictures(out: Path, assets: SessionAssets, buf, rec: dict, key: str, jobs) -> dict:
-    from umi_aug.demo.pictures import contact_sheet
+    from umi_aug.augment.pictures import contact_sheet
     from umi_aug.traj import plot_trajectories
 
     pics = {}

@@ -9,8 +9,6 @@ failure, collision, timing, no obstacle placement) is resampled with the next at
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import logging
 import math
 import time
@@ -21,10 +19,9 @@ import numpy as np
 from umi_aug.errors import AugmentError, ReconError, TrajError
 
 __all__ = ["MODE_CODES", "episode_seed", "ObstacleRecord", "PlannedEpisode", "PlanOutcome", "plan_episode",
-           "try_plan_episode", "scaled_obstacle_asset"]
+           "try_plan_episode"]
 
-if TYPE_CHECKING:  # pragma: no cover
-    from umi_aug.augment.session_assets import SessionAssets
+from umi_aug.augment.session_assets import SessionAssets, scaled_obstacle_asset
 
 log = logging.getLogger(__name__)
 
@@ -106,19 +103,6 @@ class PlanOutcome:
     attempts: int
     failures: list[str]
     plan_s: float
-
-
-def scaled_obstacle_asset(name: str, scale: float):
-    """Asset ``name`` (procedural or mesh path) scaled by ``scale`` about its object origin."""
-    from pathlib import Path
-
-    from umi_aug.recon.obstacles import PROCEDURAL_ASSETS, load_mesh_asset, procedural_asset
-
-    if name in PROCEDURAL_ASSETS:
-        return procedural_asset(name, scale)
-    if Path(name).is_file():
-        return load_mesh_asset(name, scale=scale)
-    raise AugmentError(f"obstacle asset {name!r}: neither a procedural asset {PROCEDURAL_ASSETS} nor a mesh file")
 
 
 class _AboveSupport:

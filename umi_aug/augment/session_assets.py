@@ -8,7 +8,7 @@
 2. ``contact`` — the pre-/post-contact split per demo: the detected contact frame (reconstruction report) and
    the splice frame, the last frame before it with ``pregrasp_clearance_m`` gripper clearance (demos without one
    are skipped, with a warning);
-3. ``splat`` — the scene's fisheye 3DGS (:func:`umi_aug.splat.train.train_splat_from_session`, initialised from
+3. ``splat`` — the scene's fisheye 3DGS (:func:`umi_aug.splat.train_session.train_splat_from_session`, initialised from
    the SfM cloud; ``iterations = 0`` → the initial Gaussians only, no optimisation — for smoke runs);
 4. ``gripper_mask`` — the overlay mask at policy resolution (:mod:`umi_aug.augment.overlay`);
 5. ``obstacles`` (obstacle modes only) — one Gaussian model per obstacle asset, object frame
@@ -36,7 +36,8 @@ from umi_aug.augment.config import AugmentConfig
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import AugmentError, UmiAugError
 
-__all__ = ["DemoInfo", "SessionAssets", "prepare_session", "session_fingerprint"]
+__all__ = ["DemoInfo", "SessionAssets", "prepare_session", "session_fingerprint", "scaled_obstacle_asset",
+           "load_obstacle_asset"]
 
 log = logging.getLogger(__name__)
 
@@ -207,10 +208,21 @@ class SessionAssets:
         return [d.index for d in self.demos if d.contact_index is not None]
 
 
+def scaled_obstacle_asset(name: str, scale: float):
+    """Asset ``name`` (procedural or mesh path) scaled by ``scale`` about its object origin."""
+    from pathlib import Path
+
+    from umi_aug.recon.obstacles import PROCEDURAL_ASSETS, load_mesh_asset, procedural_asset
+
+    if name in PROCEDURAL_ASSETS:
+        return procedural_asset(name, scale)
+    if Path(name).is_file():
+        return load_mesh_asset(name, scale=scale)
+    raise AugmentError(f"obstacle asset {name!r}: neither a procedural asset {PROCEDURAL_ASSETS} nor a mesh file")
+
+
 def load_obstacle_asset(asset: str):
     """Procedural asset name or mesh file path → :class:`umi_aug.recon.ObstacleAsset` (unscaled)."""
-    from umi_aug.augment.plan import scaled_obstacle_asset
-
     return scaled_obstacle_asset(asset, 1.0)
 
 
@@ -314,7 +326,8 @@ def _stage_splat(session_dir: Path, work: Path, cfg: AugmentConfig, fp: str, rec
             write_ply(out / "scene.ply", _init_only_gaussians(recon.path("cloud"), sc.sh_degree))
             return {"ply": "scene.ply"}, ["scene.ply"], {"trained": False}
         try:
-            from umi_aug.splat.train import SplatTrainConfig, train_splat_from_session
+            from umi_aug.splat.train import SplatTrainConfig
+            from umi_aug.splat.train_session import train_splat_from_session
         except ImportError as exc:
             raise AugmentError("the splat stage needs umi_aug.splat.train (fisheye 3DGS training); it is not "
                                f"importable here ({exc}); set splat.iterations = 0 for an untrained scene") from exc

@@ -9,24 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from umi_aug.io_utils import atomic_path
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> Path:
-    plt = _pyplot()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return Path(path)
+from umi_aug.augment.pictures import contact_sheet, pyplot, save_figure  # noqa: F401  (contact_sheet: demo API)
 
 
 def lens_figure(intr, path: Path) -> Path:
@@ -38,7 +21,7 @@ def lens_figure(intr, path: Path) -> Path:
 
     remapper = CubemapFisheyeRemap(intr)
 
-    plt = _pyplot()
+    plt = pyplot()
     h, w = intr.height, intr.width
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     rays, valid = unproject(np.stack([u, v], axis=-1), intr)
@@ -71,36 +54,7 @@ def lens_figure(intr, path: Path) -> Path:
     for a in (ax[0], ax[2]):
         a.set_xticks([])
         a.set_yticks([])
-    return _save(fig, path)
-
-
-def contact_sheet(
-    episodes: list[np.ndarray],  # E × [T_e, H, W, 3] uint8 (episodes may differ in length)
-    path: Path,
-    n_cols: int = 7,
-    splice_indices: list[int] | None = None,
-    row_names: list[str] | None = None,
-) -> Path:
-    """Grid of frames: one row per episode, ``n_cols − 1`` frames evenly spaced in time up to and including the
-    row's splice index (after it the frames are the original ones), then the row's last frame."""
-    plt = _pyplot()
-    n_ep = len(episodes)
-    fig, axes = plt.subplots(n_ep, n_cols, figsize=(1.9 * n_cols, 2.0 * n_ep), squeeze=False)
-    for e, frames in enumerate(episodes):
-        n_t = len(frames)
-        last_new = n_t - 1 if splice_indices is None else int(splice_indices[e])
-        cols = list(np.linspace(0, last_new, n_cols - 1).round().astype(int)) + [n_t - 1]
-        for j, k in enumerate(cols):
-            a = axes[e, j]
-            a.imshow(frames[k])
-            a.set_xticks([])
-            a.set_yticks([])
-            tag = " splice" if splice_indices is not None and k == last_new else (" end" if k == n_t - 1 else "")
-            a.set_title(f"t={k}{tag}", fontsize=7)
-        axes[e, 0].set_ylabel(row_names[e] if row_names else f"ep {e}", fontsize=8)
-    fig.suptitle("policy images (224², UMI layout): original demo and new episodes (new frames up to the splice, "
-                 "original frames after it)", fontsize=9)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def comparison_sheet(
@@ -112,7 +66,7 @@ def comparison_sheet(
 ) -> Path:
     """Rows of ground truth | augmented | absolute error (x4, invalid pixels grey) for ``n_rows`` evenly spaced
     frames, each titled with its PSNR over the valid pixels."""
-    plt = _pyplot()
+    plt = pyplot()
     k = len(ground_truth)
     rows = np.unique(np.linspace(0, k - 1, min(n_rows, k)).round().astype(int))
     fig, axes = plt.subplots(len(rows), 3, figsize=(6.3, 2.1 * len(rows)), squeeze=False)
@@ -131,4 +85,4 @@ def comparison_sheet(
             a.set_yticks([])
             a.set_title(title, fontsize=7)
     fig.suptitle("augmented frames vs simulator ground truth at the same poses", fontsize=9)
-    return _save(fig, path)
+    return save_figure(fig, path)

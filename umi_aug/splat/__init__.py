@@ -31,7 +31,7 @@ _LAZY = {
     "render_composed": "compose", "PlacedGaussians": "compose", "RenderCache": "compose",
     "render_with_backend": "gsplat_backend",
     "SplatTrainConfig": "train", "TrainView": "train", "SplatTrainResult": "train", "train_splat": "train",
-    "train_splat_from_session": "train",
+    "train_splat_from_session": "train_session",
 }
 
 

@@ -23,7 +23,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -40,7 +40,7 @@ from umi_aug.splat.optim import GaussianAdam
 from umi_aug.splat.ply import write_ply
 
 __all__ = [
-    "SplatTrainConfig", "TrainView", "SplatTrainResult", "train_splat", "train_splat_from_session",
+    "SplatTrainConfig", "TrainView", "SplatTrainResult", "train_splat",
     "split_views", "scene_scale", "init_gaussians", "CHECKPOINT_NAME",
 ]
 
@@ -288,9 +288,9 @@ def _evaluate(g: Gaussians, data: _Data, idx: Sequence[int], intr, cfg, deg) -> 
 
 
 def _cfg_dict(cfg: SplatTrainConfig) -> dict[str, Any]:
-    d = asdict(cfg)
-    d["background"] = list(cfg.background)
-    return d
+    from umi_aug.splat.train_report import config_dict
+
+    return config_dict(cfg)
 
 
 # --------------------------------------------------------------------------------------------- checkpointing
@@ -500,14 +500,6 @@ def train_splat(
         write_outputs(out, result, cfg, intr, data, held_idx if held_idx else train_eval_idx, deg_at(cfg.iterations),
                       scale, len(train_idx), len(held_idx))
     return result
-
-
-def train_splat_from_session(session_dir: str | Path, out_dir: str | Path,
-                             cfg: SplatTrainConfig = SplatTrainConfig(), **kwargs: Any) -> SplatTrainResult:
-    """Train on a UMI session folder; see :func:`umi_aug.splat.train_session.train_splat_from_session`."""
-    from umi_aug.splat.train_session import train_splat_from_session as _impl
-
-    return _impl(session_dir, out_dir, cfg, **kwargs)
 
 
 def config_from_dict(d: dict[str, Any]) -> SplatTrainConfig:

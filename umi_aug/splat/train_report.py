@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
@@ -15,10 +15,7 @@ import torch
 
 from umi_aug.io_utils import atomic_path
 
-if TYPE_CHECKING:  # pragma: no cover
-    from umi_aug.splat.train import SplatTrainConfig, SplatTrainResult, _Data
-
-__all__ = ["write_outputs", "contact_sheet", "plot_curve", "ERROR_GAIN"]
+__all__ = ["write_outputs", "config_dict", "contact_sheet", "plot_curve", "ERROR_GAIN"]
 
 #: The error column shows ``min(1, ERROR_GAIN * |render - gt|)``.
 ERROR_GAIN: float = 4.0
@@ -79,12 +76,25 @@ def plot_curve(history: Sequence[dict], path: Path) -> Path:
     return path
 
 
+def config_dict(cfg: Any) -> dict:
+    """The trainer config (:class:`umi_aug.splat.train.SplatTrainConfig`) as a JSON-ready dict (tuples as lists):
+    stored in checkpoints and ``metrics.json``. (This module takes the trainer's objects duck-typed, so that it
+    does not import the trainer that calls it.)"""
+    from dataclasses import asdict
+
+    d = asdict(cfg)
+    d["background"] = list(cfg.background)
+    return d
+
+
 @torch.no_grad()
-def write_outputs(out: Path, result: "SplatTrainResult", cfg: "SplatTrainConfig", intr, data: "_Data",
+def write_outputs(out: Path, result: Any, cfg: Any, intr, data: Any,
                   sheet_idx: Sequence[int], deg: int, scale: float, n_train: int, n_held: int) -> None:
-    """Write ``metrics.json``, ``contact_sheet.png`` and ``curve.png`` into ``out``."""
+    """Write ``metrics.json``, ``contact_sheet.png`` and ``curve.png`` into ``out``.
+
+    ``result``: :class:`umi_aug.splat.train.SplatTrainResult`; ``cfg``: its ``SplatTrainConfig``; ``data``: the
+    trainer's views (``poses``, ``images``, ``masks``, ``names``)."""
     from umi_aug.splat.renderer import render
-    from umi_aug.splat.train import _cfg_dict
 
     idx = list(sheet_idx)[: max(cfg.sheet_views, 1)]
     rows = []
@@ -99,7 +109,7 @@ def write_outputs(out: Path, result: "SplatTrainResult", cfg: "SplatTrainConfig"
         "heldout_psnr": result.heldout_psnr, "heldout_ssim": result.heldout_ssim,
         "n_gaussians": result.gaussians.n, "n_train_views": n_train, "n_heldout_views": n_held,
         "heldout_views": [data.names[i] for i in idx], "scene_scale_m": scale,
-        "image_size": [intr.width, intr.height], "config": _cfg_dict(cfg), "history": result.history,
+        "image_size": [intr.width, intr.height], "config": config_dict(cfg), "history": result.history,
         "timings": result.timings,
         "note": "seconds = training time (evaluation and checkpoints excluded); PSNR/SSIM over masked-in pixels",
     }
