@@ -244,7 +244,8 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
                 dp, dr = _pregrasp_error(probe.site_pose(), T_pre)
                 rec["pregrasp_min_pos_err_m"] = min(rec["pregrasp_min_pos_err_m"], dp)
                 rec["pregrasp_min_rot_err_deg"] = min(rec["pregrasp_min_rot_err_deg"], math.degrees(dr))
-                if not rec["pregrasp_reached"] and dp <= PREGRASP_POS_TOL_M and dr <= math.radians(PREGRASP_ROT_TOL_DEG):
+                near = dp <= PREGRASP_POS_TOL_M and dr <= math.radians(PREGRASP_ROT_TOL_DEG)
+                if near and not rec["pregrasp_reached"]:
                     rec["pregrasp_reached"], rec["pregrasp_step"] = True, steps
             rise = float(nut[2, 3] - nut_rest[2, 3])
             rec["max_nut_rise_m"] = max(rec["max_nut_rise_m"], rise)

@@ -266,7 +266,7 @@ def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
     done = results.read()
     todo = [i for i in selected if i not in done]
     workers = int(cfg.workers) if cfg.workers else usable_cores()
-    workers = max(1, min(workers, max(len(todo), 1)))
+    pool_workers = max(1, min(workers, max(len(todo), 1)))  # `workers` itself goes into the rollouts/hour rate
     video_dir = out_dir / "videos"
     tasks = []
     for k, i in enumerate(selected):
@@ -279,7 +279,7 @@ def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
                      "external_path": str(video_dir / f"config_{i:04d}_external.mp4"), "size": int(cfg.video_size)}
         tasks.append((spec, i, configs["states"][i], rollout_seed(cfg.seed, i), video))
     log.info("eval %s: %d selected, %d already done, %d to run on %d worker(s) (%s) → %s", cfg.policy,
-             len(selected), len(selected) - len(todo), len(todo), workers, cfg.executor, out_dir)
+             len(selected), len(selected) - len(todo), len(todo), pool_workers, cfg.executor, out_dir)
     t0 = time.perf_counter()
     n_ok = sum(bool(done[i]["success"]) for i in selected if i in done)
     n_seen = len(selected) - len(todo)
@@ -287,8 +287,8 @@ def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
                dynamic_ncols=True)
     try:
         if tasks:
-            it = map_ordered(_run_task, tasks, executor=cfg.executor, workers=workers, address=cfg.ray_address,
-                             threads_per_worker=1)
+            it = map_ordered(_run_task, tasks, executor=cfg.executor, workers=pool_workers,
+                             address=cfg.ray_address, threads_per_worker=1)
             for rec in it:
                 if configs.get("source_index") is not None:
                     rec["source_index"] = int(configs["source_index"][rec["config"]])
