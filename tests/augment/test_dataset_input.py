@@ -195,3 +195,28 @@ def test_real_demonstration_end_to_end(tmp_path):
         # the augmented episode starts elsewhere and ends on the demonstration's replayed tail
         np.testing.assert_allclose(new["robot0_eef_pos"][-1], src["robot0_eef_pos"][399], atol=1e-5)
     assert Path(s.pictures["contact_sheet"]).is_file()
+
+
+def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
+    """A plain dataset gets the measured episode-frame 3DGS defaults, a session the scan defaults; explicit flags
+    win over both."""
+    import argparse
+
+    from umi_aug.augment.cli import (DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS, add_augment_parser,
+                                     config_from_args)
+    from umi_aug.augment.config import AugmentConfig
+
+    parser = argparse.ArgumentParser()
+    add_augment_parser(parser.add_subparsers())
+    ds = tmp_path / "dataset.zarr.zip"
+    ds.write_bytes(b"")
+    session = tmp_path / "session"
+    (session / "demos").mkdir(parents=True)
+    base = AugmentConfig().splat
+    cfg = config_from_args(parser.parse_args(["augment", str(ds), "--out", str(tmp_path / "o.zarr.zip")]))
+    assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS)
+    cfg = config_from_args(parser.parse_args(["augment", str(session), "--out", str(tmp_path / "o.zarr.zip")]))
+    assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (base.iterations, base.max_gaussians)
+    cfg = config_from_args(parser.parse_args(["augment", str(ds), "--out", "o.zarr.zip", "--splat-iterations", "7",
+                                              "--splat-max-gaussians", "900"]))
+    assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (7, 900)
