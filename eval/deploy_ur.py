@@ -11,7 +11,6 @@ Ctrl-C stops the robot. A safety stop prints one message and exits with status 3
 
 from __future__ import annotations
 
-import logging
 import sys
 from pathlib import Path
 
@@ -21,28 +20,17 @@ from omegaconf import DictConfig, OmegaConf
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
 
 
-def _log_to_file(out_dir: Path) -> None:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    root = logging.getLogger()
-    for h in list(root.handlers):
-        root.removeHandler(h)
-    fh = logging.FileHandler(out_dir / "deploy_ur.log")
-    fh.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s"))
-    root.addHandler(fh)
-    root.setLevel(logging.INFO)
-
-
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="deploy_ur")
 def main(cfg: DictConfig) -> None:
     from umi_aug.deploy.app import run_deploy
     from umi_aug.deploy.safety import SafetyStop
     from umi_aug.errors import UmiAugError
-    from umi_aug.runtime import configure_threads
+    from umi_aug.runtime import configure_threads, log_to_file
 
     c = OmegaConf.to_container(cfg, resolve=True)
     out_dir = Path(c.get("out_dir") or "deploy_runs/latest")
     c["out_dir"] = str(out_dir)
-    _log_to_file(out_dir)
+    log_to_file(out_dir / "deploy_ur.log")
     configure_threads(1)
     try:
         s = run_deploy(c)

@@ -12,7 +12,6 @@ the same command resumes (finished configurations are skipped). See ``eval/READM
 
 from __future__ import annotations
 
-import logging
 import sys
 from pathlib import Path
 
@@ -28,29 +27,15 @@ CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
 ConfigStore.instance().store(name="eval_sim_schema", node=EvalSimConfig)
 
 
-def _log_to_file(out_dir: Path) -> None:
-    """Library logs go to ``out_dir/eval_sim.log``, not the console (warnings and errors still print)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    root = logging.getLogger()
-    for h in list(root.handlers):
-        root.removeHandler(h)
-    fh = logging.FileHandler(out_dir / "eval_sim.log")
-    fh.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s"))
-    root.addHandler(fh)
-    root.setLevel(logging.INFO)
-    for noisy in ("robosuite", "robomimic"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
-
-
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval_sim")
 def main(cfg: DictConfig) -> None:
     from umi_aug.eval.runner import default_out_dir, run_eval
-    from umi_aug.runtime import configure_threads
+    from umi_aug.runtime import configure_threads, log_to_file
 
     try:
         typed: EvalSimConfig = OmegaConf.to_object(cfg)
         out_dir = Path(typed.out_dir) if typed.out_dir else default_out_dir(typed)
-        _log_to_file(out_dir)
+        log_to_file(out_dir / "eval_sim.log")
         configure_threads(1)
         summary = run_eval(typed)
     except UmiAugError as exc:

@@ -1,4 +1,5 @@
-"""Process-level runtime settings: thread counts for the 2-core machines this project targets.
+"""Process-level runtime settings: thread counts for the 2-core machines this project targets, and where an
+application's library logs go.
 
 Nothing here runs at import time; entry points (CLI, training, benchmarks, tests) call
 :func:`configure_threads` once, before heavy libraries start their thread pools.
@@ -45,3 +46,23 @@ def configure_threads(n_threads: int | None = None) -> int:
             torch.set_num_threads(wanted)
         return wanted
     return int(os.environ["OMP_NUM_THREADS"])
+
+
+def log_to_file(path: str | os.PathLike, quiet: tuple[str, ...] = ("robosuite", "robomimic")) -> None:
+    """Send library logs (INFO and up) to ``path`` instead of the console: the root logger's handlers are
+    replaced by one file handler, and the loggers named in ``quiet`` are raised to WARNING. For applications
+    (``eval/*.py``) that print their own summary; the folder of ``path`` is created."""
+    import logging
+    from pathlib import Path
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    fh = logging.FileHandler(path)
+    fh.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s"))
+    root.addHandler(fh)
+    root.setLevel(logging.INFO)
+    for name in quiet:
+        logging.getLogger(name).setLevel(logging.WARNING)
