@@ -116,19 +116,9 @@ def test_cli_bad_checkpoint_is_one_clear_error(tmp_path):
 @pytest.fixture(scope="module")
 def tiny_ckpt(tmp_path_factory):
     """A random-weight tiny policy (as tests/eval's fixture) with a normaliser fitted on a synthetic dataset."""
-    from tests.policy.helpers import make_dataset, tiny_config
-    from umi_aug.policy.checkpoint import save_checkpoint
-    from umi_aug.policy.config import config_to_dict, shape_meta
-    from umi_aug.policy.dataset import UmiPolicyDataset
-    from umi_aug.policy.diffusion_policy import DiffusionUnetPolicy
+    from tests.policy.helpers import make_tiny_checkpoint
 
-    tmp = tmp_path_factory.mktemp("ckpt")
-    ds = make_dataset(tmp / "d.zarr.zip", np.random.default_rng(0), n_episodes=2, length=60)
-    cfg = tiny_config(ds, tmp, obs_down_sample_steps=3, val_ratio=0.0)
-    model = DiffusionUnetPolicy(shape_meta(cfg.task), cfg.policy, warn_random_init=False)
-    model.set_normalizer(UmiPolicyDataset(ds, cfg.task, split="all").fit_normalizer())
-    return save_checkpoint(tmp / "tiny.ckpt", {"cfg": config_to_dict(cfg), "state_dicts": {"model": model.state_dict()},
-                                               "pickles": {"global_step": 0, "epoch": 0, "epoch_done": True}})
+    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"), length=60, obs_down_sample_steps=3)
 
 
 @pytest.mark.slow

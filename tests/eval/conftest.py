@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 CONFIGS_FILE = Path(__file__).resolve().parents[2] / "eval" / "square_init_configs_1000.npz"
@@ -38,16 +37,6 @@ def square_env():
 def tiny_checkpoint(tmp_path_factory) -> Path:
     """A random-weight checkpoint of a tiny policy (32² images, ResNet width 8) with a normaliser fitted on a
     synthetic dataset — enough to run the closed loop (it will not solve the task)."""
-    from umi_aug.policy.checkpoint import save_checkpoint
-    from umi_aug.policy.config import config_to_dict, shape_meta
-    from umi_aug.policy.dataset import UmiPolicyDataset
-    from umi_aug.policy.diffusion_policy import DiffusionUnetPolicy
-    from tests.policy.helpers import make_dataset, tiny_config
+    from tests.policy.helpers import make_tiny_checkpoint
 
-    tmp = tmp_path_factory.mktemp("ckpt")
-    ds = make_dataset(tmp / "d.zarr.zip", np.random.default_rng(0), n_episodes=2, length=40)
-    cfg = tiny_config(ds, tmp, obs_down_sample_steps=1, val_ratio=0.0)
-    model = DiffusionUnetPolicy(shape_meta(cfg.task), cfg.policy, warn_random_init=False)
-    model.set_normalizer(UmiPolicyDataset(ds, cfg.task, split="all").fit_normalizer())
-    return save_checkpoint(tmp / "tiny.ckpt", {"cfg": config_to_dict(cfg), "state_dicts": {"model": model.state_dict()},
-                                               "pickles": {"global_step": 0, "epoch": 0, "epoch_done": True}})
+    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"), length=40, obs_down_sample_steps=1)

@@ -65,3 +65,19 @@ def tiny_config(dataset: Path, tmp: Path, encoder: str = "resnet", **task) -> Tr
         "training": {"num_epochs": 1, "lr": 1e-3, "lr_warmup_steps": 2, "progress_bar": False, "checkpoint_every": 1,
                      "sample_every": 1, "max_val_steps": 1},
     })
+
+
+def make_tiny_checkpoint(tmp: Path, length: int = 40, obs_down_sample_steps: int = 1) -> Path:
+    """``tmp/tiny.ckpt``: a random-weight tiny policy (:func:`tiny_config`) with a normaliser fitted on a 2-episode
+    synthetic dataset of ``length`` steps, in the trained-checkpoint format — enough to run a closed loop."""
+    from umi_aug.policy.checkpoint import save_checkpoint
+    from umi_aug.policy.config import config_to_dict, shape_meta
+    from umi_aug.policy.dataset import UmiPolicyDataset
+    from umi_aug.policy.diffusion_policy import DiffusionUnetPolicy
+
+    ds = make_dataset(tmp / "d.zarr.zip", np.random.default_rng(0), n_episodes=2, length=length)
+    cfg = tiny_config(ds, tmp, obs_down_sample_steps=obs_down_sample_steps, val_ratio=0.0)
+    model = DiffusionUnetPolicy(shape_meta(cfg.task), cfg.policy, warn_random_init=False)
+    model.set_normalizer(UmiPolicyDataset(ds, cfg.task, split="all").fit_normalizer())
+    return save_checkpoint(tmp / "tiny.ckpt", {"cfg": config_to_dict(cfg), "state_dicts": {"model": model.state_dict()},
+                                               "pickles": {"global_step": 0, "epoch": 0, "epoch_done": True}})
