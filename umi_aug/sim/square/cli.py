@@ -32,6 +32,10 @@ def add_square_parsers(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--hdf5", default=None, help="dataset whose demos' initial states are the sources "
                                                 "(default: seeded resets 0..--n-sources-1)")
     p.add_argument("--n-sources", type=int, default=200)
+    p.add_argument("--first-seed", type=int, default=0, help="seeded resets --first-seed.. are the sources")
+    p.add_argument("--no-cone", action="store_true",
+                   help="write the seeded resets themselves (the demos' own start distribution; --n of them, "
+                        "seeds --first-seed..; use seeds no demo used) instead of cone samples around them")
     p.add_argument("--theta-deg", type=float, default=50.0)
     p.add_argument("--radius", type=float, default=0.15, help="metres")
     p.add_argument("--seed", type=int, default=0)
@@ -59,15 +63,28 @@ def cmd_square_init_configs(args: argparse.Namespace) -> int:
     import json as _json
 
     from umi_aug.sim.square.env import SquareEnv
-    from umi_aug.sim.square.init_configs import (InitConfigSpec, sample_init_configs, source_states_from_hdf5,
-                                                 source_states_from_seeds, write_init_configs)
+    from umi_aug.sim.square.init_configs import (InitConfigSpec, reset_init_configs, sample_init_configs,
+                                                 source_states_from_hdf5, source_states_from_seeds,
+                                                 write_init_configs)
 
+    if args.no_cone:
+        if args.hdf5:
+            from umi_aug.errors import SimError
+
+            raise SimError("--no-cone takes seeded resets (seeds --first-seed..); drop --hdf5")
+        env = SquareEnv(image_size=None)
+        seeds = list(range(args.first_seed, args.first_seed + args.n))
+        configs = reset_init_configs(env, source_states_from_seeds(env, seeds), seeds)
+        path = write_init_configs(args.out, configs, env.env_meta)
+        print(_json.dumps(configs["report"]))
+        print(path)
+        return 0
     if args.hdf5:
         sources, env_args = source_states_from_hdf5(args.hdf5)
         env = SquareEnv(env_meta=_json.loads(env_args), image_size=None)
     else:
         env = SquareEnv(image_size=None)
-        sources = source_states_from_seeds(env, list(range(args.n_sources)))
+        sources = source_states_from_seeds(env, list(range(args.first_seed, args.first_seed + args.n_sources)))
     spec = InitConfigSpec(n=args.n, theta_deg=args.theta_deg, radius=args.radius, seed=args.seed)
     configs = sample_init_configs(env, sources, spec)
     path = write_init_configs(args.out, configs, env.env_meta)

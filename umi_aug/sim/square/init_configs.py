@@ -29,7 +29,7 @@ from umi_aug.io_utils import atomic_path
 from umi_aug.sim.square.env import GRIP_SITE, SquareEnv
 
 __all__ = ["InitConfigSpec", "source_states_from_hdf5", "source_states_from_seeds", "sample_init_configs",
-           "write_init_configs", "load_init_configs", "apply_init_config"]
+           "reset_init_configs", "write_init_configs", "load_init_configs", "apply_init_config"]
 
 log = logging.getLogger(__name__)
 
@@ -140,6 +140,35 @@ def sample_init_configs(env: SquareEnv, sources: np.ndarray, spec: InitConfigSpe
               "max_ik_rot_err_deg": float(np.degrees(arrays["ik_rot_err"].max()))}
     if rejected:
         log.info("init configs: %d samples rejected and resampled: %s", sum(rejected.values()), dict(rejected))
+    return arrays | {"report": report}
+
+
+def reset_init_configs(env: SquareEnv, sources: np.ndarray, seeds: list[int] | None = None) -> dict[str, Any]:
+    """The source states themselves as start configurations (no cone, no IK): the demos' own start distribution.
+
+    A scripted demo starts from a seeded reset, so seeded resets with seeds no demo used are the in-distribution
+    evaluation set. Same keys as :func:`sample_init_configs`; the target/reached grip-site poses are the reset's own,
+    the IK errors 0.
+
+    Args:
+        env: a :class:`SquareEnv` (images not needed).
+        sources: float64 [D, S] flattened initial states (e.g. :func:`source_states_from_seeds`).
+        seeds: the reset seeds the sources came from, recorded in the report.
+    """
+    sources = np.asarray(sources, dtype=np.float64)
+    if sources.ndim != 2 or len(sources) == 0:
+        raise SimError(f"reset_init_configs: sources must be [D, S] with D >= 1, got {sources.shape}")
+    cams, sites = [], []
+    for state in sources:
+        env.reset_to(state)
+        cams.append(env.wrist_pose())
+        sites.append(env.site_pose(GRIP_SITE))
+    n = len(sources)
+    arrays = {"states": sources.copy(), "source_index": np.arange(n), "T_world_cam": np.asarray(cams),
+              "T_world_site_target": np.asarray(sites), "T_world_site_reached": np.asarray(sites),
+              "ik_pos_err": np.zeros(n), "ik_rot_err": np.zeros(n)}
+    report = {"spec": {"n": n, "kind": "reset", "seeds": None if seeds is None else [int(s) for s in seeds]},
+              "n_sources": n, "tries": 0, "rejected": {}, "max_ik_pos_err_m": 0.0, "max_ik_rot_err_deg": 0.0}
     return arrays | {"report": report}
 
 
