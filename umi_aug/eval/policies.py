@@ -53,7 +53,11 @@ class EvalPolicy(Protocol):
 
     def act(self, env: Any, obs: dict[str, np.ndarray]) -> np.ndarray:
         """OSC_POSE delta action ``[7]`` for the current step (``obs``: env observation, + ``camera0_rgb`` when
-        ``image_size`` is set)."""
+        ``image_size`` is set: the rendered image, or ``None`` where :meth:`wants_image` said no)."""
+
+    def wants_image(self) -> bool:
+        """Whether the image of the coming :meth:`act` call will ever be looked at (policies with images only;
+        the harness renders only those frames)."""
 
 
 def abs_tcp_to_osc_delta(T_world_tcp: np.ndarray, width: float, target: np.ndarray,
@@ -227,7 +231,23 @@ class CheckpointEvalPolicy:
         h = list(self._hist)
         idx = [max(0, len(h) - 1 - k * self.down) for k in range(self.To)][::-1]
         rows = [h[i] for i in idx]
+        if any(r["camera0_rgb"] is None for r in rows):  # wants_image() said no to a frame used here: a bug
+            raise PolicyError(f"observation frames {idx} of {len(h)}: an image the schedule skipped is needed")
         return {k: np.stack([r[k] for r in rows]) for k in rows[0]}
+
+    def wants_image(self) -> bool:
+        """True iff the frame of the coming :meth:`act` enters some future inference's observation window.
+
+        Inferences happen when the queue runs empty: in ``q`` steps (``q`` = targets still queued; now if 0), then
+        every ``L = n_action_steps · obs_down_sample_steps`` steps; each looks back at offsets
+        ``0, down, …, (To−1)·down``. The very first frame is always kept (early windows pad with it). With UMI's
+        ``To = 2``, 8 executed targets and ``down = 1`` this renders 2 frames in 8.
+        """
+        q = len(self._queue)
+        if q == 0 or not self._hist:
+            return True
+        L = self.n_exec * self.down
+        return any(k * self.down >= q and (k * self.down - q) % L == 0 for k in range(self.To))
 
     def act(self, env: Any, obs: dict[str, np.ndarray]) -> np.ndarray:
         self._hist.append({"robot0_eef_pos": np.asarray(obs["robot0_eef_pos"], np.float64),

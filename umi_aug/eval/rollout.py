@@ -1,7 +1,8 @@
 """One evaluation rollout of the square task from a stored start configuration, with its record.
 
 Per control step (20 Hz): observe (low-dim always; the fisheye wrist image only when the policy has an
-``image_size``) → ``policy.act`` → ``env.step``. Time is split into ``sim`` (``env.step`` incl. robosuite's
+``image_size``, and only at the steps whose frame it will look at: ``EvalPolicy.wants_image``) →
+``policy.act`` → ``env.step``. Time is split into ``sim`` (``env.step`` incl. robosuite's
 observation), ``render`` (fisheye wrist image), ``policy`` (``act``, incl. inference) and ``other`` (sub-goal and
 contact checks, reset). Recorded (all world frame, metres):
 
@@ -179,7 +180,8 @@ class _Videos:
 
 def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, config: int, seed: int,
                    horizon: int = 400, camera=None, stop_on_success: bool = True,
-                   video: VideoSpec | None = None, camera_factory=None) -> dict[str, Any]:
+                   video: VideoSpec | None = None, camera_factory=None,
+                   render_every_step: bool = False) -> dict[str, Any]:
     """Run ``policy`` from the flattened MuJoCo ``state`` for up to ``horizon`` control steps.
 
     The environment is first reset (fixed seed 0: clears the gripper's integrated command and the controller, so a
@@ -196,6 +198,8 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
         stop_on_success: end at the first successful step (robomimic's ``terminate_on_success``; the score —
             success at any step — is the same as running on).
         video: write videos of this rollout.
+        render_every_step: render the wrist image at every step, not only the frames the policy will look at
+            (reference path of the tests; same outcome, ~4× the rendering).
     Returns:
         JSON-able record (see module docstring).
     """
@@ -219,9 +223,11 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
     touched = False  # a finger has touched the nut (from then on the pre-grasp goal and rest height are frozen)
     try:
         for t in range(int(horizon)):
-            if policy.image_size:
+            if policy.image_size:  # only the frames the policy will look at (see EvalPolicy.wants_image)
                 t0 = time.perf_counter()
-                obs["camera0_rgb"] = camera.render(env.data, env.wrist_pose())
+                wants = getattr(policy, "wants_image", None)
+                obs["camera0_rgb"] = (camera.render(env.data, env.wrist_pose())
+                                      if render_every_step or wants is None or wants() else None)
                 tm["render"] += time.perf_counter() - t0
             t0 = time.perf_counter()
             action = policy.act(env, obs)
