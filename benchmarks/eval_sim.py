@@ -2,7 +2,8 @@
 
 Run: ``python benchmarks/eval_sim.py [--steps 24] [--sizes 84 224] [--encoders small clip_vit_b16] [--threads 1]``
 
-Table 1: per policy × image size, ONE short closed-loop rollout of ``--steps`` control steps (20 Hz) from start
+Table 1: per policy × image size, ONE short closed-loop rollout (the harness renders only the frames an inference
+looks at; ``--every-step-reference`` adds the same rollout rendering every frame, the old path, for the ratio) of ``--steps`` control steps (20 Hz) from start
 configuration 0 in this process (1 torch thread = one eval worker), the per-step time split (simulation /
 rendering / policy incl. inference every ``n_action_steps`` steps / other) and the rollouts/hour that gives for a
 400-step rollout (the horizon a failing rollout runs to) on 1 worker and on 2 workers (×2, i.e. assuming the two
@@ -57,10 +58,11 @@ def _random_policy(encoder: str, size: int):
     return Policy(model, cfg, "cpu"), n_params, cfg.policy.num_inference_steps
 
 
-def _measure(env, probe, policy, state, steps: int, camera=None) -> dict:
+def _measure(env, probe, policy, state, steps: int, camera=None, render_every_step: bool = False) -> dict:
     from umi_aug.eval.rollout import rollout_config
 
-    rec = rollout_config(env, probe, policy, state, 0, 0, horizon=steps, camera=camera, stop_on_success=False)
+    rec = rollout_config(env, probe, policy, state, 0, 0, horizon=steps, camera=camera, stop_on_success=False,
+                         render_every_step=render_every_step)
     n = rec["steps"]
     ms = {k: 1000.0 * v / n for k, v in rec["time_s"].items()}
     return {"ms": ms, "total_ms": sum(ms.values())}
@@ -72,6 +74,8 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[84, 224])
     ap.add_argument("--encoders", nargs="+", default=["small", "clip_vit_b16"])
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 = one eval worker)")
+    ap.add_argument("--every-step-reference", action="store_true",
+                    help="also time each policy rendering the wrist frame at every step (before wants_image)")
     args = ap.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     from rich.console import Console
@@ -102,9 +106,11 @@ def main() -> None:
             cam = WristFisheyeCamera(env.model, size)
             try:
                 _measure(env, probe, ev, state, 2, cam)  # warm-up (first inference, GL context)
-                rows.append((f"{enc} ({n_params / 1e6:.0f} M, {k} den. steps, {ev.n_exec}/inference)", f"{size}²",
-                             str(ev.n_exec),
-                             _measure(env, probe, ev, state, args.steps, cam)))
+                label = f"{enc} ({n_params / 1e6:.0f} M, {k} den. steps, {ev.n_exec}/inference)"
+                if args.every_step_reference:
+                    rows.append((f"{label}, every frame rendered", f"{size}²", str(ev.n_exec),
+                                 _measure(env, probe, ev, state, args.steps, cam, render_every_step=True)))
+                rows.append((label, f"{size}²", str(ev.n_exec), _measure(env, probe, ev, state, args.steps, cam)))
             finally:
                 cam.close()
     env.close()
