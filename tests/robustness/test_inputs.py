@@ -170,17 +170,20 @@ def test_session_episode_and_demo_count_mismatch(session):
     ds = session / "dataset.zarr.zip"
     ds.unlink()
     write_dataset(ds, lengths=(N_DEMO, N_DEMO))
-    assert _check(session) == (f"{ds}: 2 episodes but {session / 'demos'} has 1 demo folders (demo_00); the "
-                               f"dataset must hold one episode per demo, in the demo folders' sorted order")
+    # not one episode per video: each must be a tracked segment of a demo video (UMI's episodes), matched by TCP
+    msg = _check(session)
+    assert msg.startswith(f"{ds}: episode 0 (8 steps) matches no tracked segment of the demo videos (demo_00): "
+                          f"robot0_eef_pos must equal the TCP of camera_trajectory.csv"), msg
+    assert "within 0.002 m on every frame; nearest tracked start: demo_00 frame 0 at " in msg
 
 
 def test_session_episode_length_mismatch(session):
     ds = session / "dataset.zarr.zip"
     ds.unlink()
     write_dataset(ds, lengths=(N_DEMO - 1,))
-    assert _check(session) == (f"{ds}: episode 0 has {N_DEMO - 1} steps but demo demo_00 has {N_DEMO} video "
-                               f"frames / CSV rows ({session / 'demos' / 'demo_00' / 'raw_video.mp4'}); the dataset "
-                               f"belongs to another session or demo")
+    msg = _check(session)
+    assert msg.startswith(f"{ds}: episode 0 ({N_DEMO - 1} steps) matches no tracked segment of the demo videos "
+                          f"(demo_00): robot0_eef_pos must equal the TCP"), msg
 
 
 def test_session_image_size_other_than_the_runs(session, tmp_path, stop_before_stages):

@@ -1,11 +1,11 @@
 """Checks of every input of an ``augment`` run, in one pass, before any stage computes (issue #18).
 
 :func:`check_session_inputs` reads a UMI session's ``dataset.zarr.zip`` (readable zip, layout, NaN/Inf, complete
-image-chunk listing), cross-checks it with the demo folders (one episode per demo, episode length = the demo's CSV
-rows, gripper widths present) and loads the session through the session reader (CSVs: columns, monotonic
-timestamps, rows per video frame; the mapping CSV; the intrinsics at the frames' size). Each problem raises one
-:class:`~umi_aug.errors.AugmentError` naming the file, key, row and value; suspicious-but-legal intrinsics
-(principal point outside the image, large ``|k1|``, focal lengths far from a fisheye's) become warnings.
+image-chunk listing) and loads the session through the session reader, which maps every episode onto its demo video
+(a whole video, or UMI's tracked segment of one: :func:`umi_aug.recon.session_io.load_session`) and checks the CSVs
+(columns, monotonic timestamps, rows per video frame; the mapping CSV) and the intrinsics at the frames' size. Each
+problem raises one :class:`~umi_aug.errors.AugmentError` naming the file, key, row and value; suspicious-but-legal
+intrinsics (principal point outside the image, large ``|k1|``, focal lengths far from a fisheye's) become warnings.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 from umi_aug.errors import AugmentError, UmiAugError
 
@@ -58,8 +57,8 @@ def intrinsics_warnings(intr, source: str, frame_size: tuple[int, int] | None = 
     return out
 
 
-def _dataset_check(ds: Path, image_size: int | None) -> tuple[int, dict[int, np.ndarray], int]:
-    """Validate the session's dataset: (episodes, {episode: gripper widths}, bytes)."""
+def _dataset_check(ds: Path, image_size: int | None) -> tuple[int, int]:
+    """Validate the session's dataset: (episodes, bytes)."""
     from umi_aug.data import ReplayBuffer
 
     try:
@@ -67,8 +66,6 @@ def _dataset_check(ds: Path, image_size: int | None) -> tuple[int, dict[int, np.
             if "robot0_gripper_width" not in buf:
                 raise AugmentError(f"{ds}: no key 'data/robot0_gripper_width' (the demos' gripper widths); "
                                    f"keys: {buf.keys()}")
-            widths = {i: np.asarray(buf.get_episode(i, ["robot0_gripper_width"])["robot0_gripper_width"],
-                                    dtype=np.float64).reshape(-1) for i in range(buf.n_episodes)}
             n = buf.n_episodes
             if image_size is not None and "camera0_rgb" in buf:
                 shape = tuple(buf["camera0_rgb"].shape[1:3])
@@ -80,7 +77,7 @@ def _dataset_check(ds: Path, image_size: int | None) -> tuple[int, dict[int, np.
         raise
     except UmiAugError as exc:
         raise AugmentError(str(exc)) from exc
-    return n, widths, ds.stat().st_size
+    return n, ds.stat().st_size
 
 
 def _once(msg: str) -> str:
@@ -104,7 +101,7 @@ def check_session_inputs(session_dir: str | os.PathLike, image_size: int | None 
     if not ds.exists():
         raise AugmentError(f"{root}: no dataset.zarr.zip (the original episodes); run UMI's "
                            "07_generate_replay_buffer first")
-    n_eps, widths, nbytes = _dataset_check(ds, image_size)
+    n_eps, nbytes = _dataset_check(ds, image_size)
     try:
         sess = load_session(root)  # CSVs (columns, monotonic timestamps, one row per frame), mapping, intrinsics
     except UmiAugError as exc:
@@ -115,16 +112,11 @@ def check_session_inputs(session_dir: str | os.PathLike, image_size: int | None 
         if seq.T_world_cam is None:
             raise AugmentError(f"{csvs[seq.name]}: missing (the camera trajectory of {seq.source}, from UMI's SLAM "
                                f"step); every sequence needs its CSV")
-    names = [d.name for d in sess.demos]
-    if n_eps != len(names):
-        raise AugmentError(f"{ds}: {n_eps} episodes but {root / 'demos'} has {len(names)} demo folders "
-                           f"({', '.join(names) or 'none'}); the dataset must hold one episode per demo, in the "
-                           f"demo folders' sorted order")
-    for i, d in enumerate(sess.demos):
-        w = widths[i]
-        if len(w) != d.n_frames:
-            raise AugmentError(f"{ds}: episode {i} has {len(w)} steps but demo {d.name} has {d.n_frames} video "
-                               f"frames / CSV rows ({d.source}); the dataset belongs to another session or demo")
+    # load_session mapped every episode onto its demo video (whole video, or UMI's tracked segment of it)
+    if len(sess.demos) != n_eps or any(d.gripper_width is None for d in sess.demos):
+        raise AugmentError(f"{ds}: {n_eps} episodes but the session's demo videos give {len(sess.demos)} "
+                           f"({', '.join(d.name for d in sess.demos) or 'none'}); the dataset belongs to another "
+                           f"session")
     warnings = intrinsics_warnings(sess.intrinsics, f"{root}: intrinsics", None)
     for w in warnings:
         log.warning("%s", w)

@@ -228,8 +228,9 @@ def load_obstacle_asset(asset: str):
 
 def session_fingerprint(session_dir: Path) -> str:
     """Content hash of what the stages read from a session: every file under ``demos/`` and ``calibration/``
-    (CSV/JSON/intrinsics whole, videos by size + first/last MiB) and ``dataset.zarr.zip``'s entries with their
-    CRCs (:func:`umi_aug.data.fingerprint.content_fingerprint`): an in-place edit of the same size changes it."""
+    (CSV/JSON/intrinsics whole, videos by size + first/last MiB), ``dataset_plan.pkl`` and ``dataset.zarr.zip``'s
+    entries with their CRCs (:func:`umi_aug.data.fingerprint.content_fingerprint`): an in-place edit of the same
+    size changes it."""
     from umi_aug.data.fingerprint import content_fingerprint, file_fingerprint
 
     root = Path(session_dir)
@@ -243,6 +244,9 @@ def session_fingerprint(session_dir: Path) -> str:
                 h.update(f"{rel}:{file_fingerprint(p)};".encode())
     ds = root / "dataset.zarr.zip"
     h.update(f"dataset:{content_fingerprint(ds) if ds.exists() else -1}".encode())
+    plan = root / "dataset_plan.pkl"  # which video segment each episode is (umi_aug.recon.session_io)
+    if plan.is_file():
+        h.update(f"plan:{file_fingerprint(plan)}".encode())
     return h.hexdigest()[:16]
 
 

@@ -2,7 +2,8 @@
 
 ``<session>/demos/mapping/raw_video.mp4`` + ``mapping_camera_trajectory.csv`` (the scan),
 ``demos/<demo>/raw_video.mp4`` + ``camera_trajectory.csv`` (demonstrations), ``demos/mapping/tx_slam_tag.json``
-(SLAM map → table tag), the GoPro intrinsics JSON and ``dataset.zarr.zip`` (gripper widths). No frames are extracted:
+(SLAM map → table tag), the GoPro intrinsics JSON and ``dataset.zarr.zip`` (gripper widths; optional
+``dataset_plan.pkl``). No frames are extracted:
 :meth:`ImageSequence.read_frames` decodes only the requested frame indices, at the size a stage asks for, in one
 sequential pass (:mod:`umi_aug.data.video`). Old sessions with ``images/NNNNNN.jpg`` folders and no video are still
 read (frames from the files).
@@ -12,6 +13,11 @@ rows (``is_lost=true``) are kept as ``valid = False`` (pose = identity) and ever
 left in the frames, as UMI's SLAM sees them (its mask covers only the mirrors and fingers); UMI removes tags only
 when it makes the 224² dataset images (``inpaint_tag`` in 07_generate_replay_buffer).
 
+Demos are returned in the order of the dataset's episodes, one per episode. UMI's episodes are the tracked
+segments of each demo video (lost frames dropped; a video may hold several, or none): each demo is cropped to its
+episode's segment, found from ``dataset_plan.pkl`` (``cameras[0].video_start_end``) or, without it, by matching
+the episode's ``robot0_eef_pos`` with the CSV's TCP poses (:func:`_assign_episodes`).
+
 Poses are returned in the world = table-tag frame: ``T_world_cam = inv(tx_slam_tag) @ T_slam_cam`` (UMI's 06
 script), OpenCV camera axes, metres. Every problem raises :class:`umi_aug.errors.ReconError` naming the file and what
 to do.
@@ -19,6 +25,7 @@ to do.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -60,6 +67,8 @@ class ImageSequence:
         gripper_width: np.ndarray | None,  # [N] metres (demos, from the replay buffer), None if unknown
         image_paths: old layout only: the N frame files; None for videos.
         fps: the video's frame rate (NaN for image folders).
+        frame_offset: video frame of this sequence's frame 0 (a demo cropped to its dataset episode, a valid SLAM
+            segment of the video: :meth:`cropped`); frame indices of every method are relative to it.
     """
 
     name: str
@@ -72,13 +81,15 @@ class ImageSequence:
     gripper_width: np.ndarray | None = None
     image_paths: list[Path] | None = None
     fps: float = float("nan")
+    frame_offset: int = 0
     _info: object | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return self.n_frames
 
     def __repr__(self) -> str:
-        return (f"ImageSequence({self.name!r}, {self.source}, {self.n_frames} frames "
+        at = f" from video frame {self.frame_offset}" if self.frame_offset else ""
+        return (f"ImageSequence({self.name!r}, {self.source}, {self.n_frames} frames{at} "
                 f"{self.frame_size[0]}x{self.frame_size[1]}, {int(np.sum(self.valid))} tracked, "
                 f"poses={'yes' if self.T_world_cam is not None else 'no'}, "
                 f"widths={'yes' if self.gripper_width is not None else 'no'})")
@@ -105,7 +116,8 @@ class ImageSequence:
         idx = self._indices(indices)
         if self.image_paths is None:
             try:
-                yield from iter_video_frames(self.source, idx, size, info=self._info)
+                for k, img in iter_video_frames(self.source, idx + self.frame_offset, size, info=self._info):
+                    yield k - self.frame_offset, img
             except UmiAugError as exc:
                 raise ReconError(f"{exc}; re-copy the video or re-create the session") from exc
             return
@@ -123,6 +135,19 @@ class ImageSequence:
                 img = cv2.resize(img[y0:y0 + ch, x0:x0 + cw], tuple(int(s) for s in size),
                                  interpolation=cv2.INTER_AREA)
             yield k, img
+
+    def cropped(self, start: int, stop: int, name: str | None = None) -> "ImageSequence":
+        """Frames ``[start, stop)`` of this sequence as a sequence of their own (poses, validity, timestamps
+        cropped; no gripper widths), reading the same video from frame ``frame_offset + start``."""
+        start, stop = int(start), int(stop)
+        if not 0 <= start < stop <= self.n_frames:
+            raise ReconError(f"{self.source}: crop [{start}, {stop}) outside the {self.n_frames} frames")
+        return dataclasses.replace(
+            self, name=self.name if name is None else name, n_frames=stop - start,
+            T_world_cam=None if self.T_world_cam is None else self.T_world_cam[start:stop].copy(),
+            valid=self.valid[start:stop].copy(), timestamp=self.timestamp[start:stop].copy(), gripper_width=None,
+            image_paths=None if self.image_paths is None else self.image_paths[start:stop],
+            frame_offset=self.frame_offset + start if self.image_paths is None else 0)
 
     def read_frames(self, indices: Sequence[int] | np.ndarray, size: tuple[int, int] | None = None,
                     progress: bool = False) -> np.ndarray:
@@ -250,23 +275,203 @@ def _trajectory(seq: ImageSequence, csv: Path, T_tag_slam: np.ndarray) -> None:
         log.info("%s: %d of %d frames lost by SLAM (skipped)", csv, int((~seq.valid).sum()), n)
 
 
-def _widths(root: Path, demos: list[ImageSequence]) -> None:
-    zp = root / "dataset.zarr.zip"
-    if not zp.exists():
-        return
+#: Largest ``|robot0_eef_pos − TCP position|`` (metres) on any frame of a matched episode ↔ video segment; the TCP
+#: comes from ``camera_trajectory.csv`` (pose in the tag frame via ``tx_slam_tag.json``, UMI's camera→TCP offset).
+SEGMENT_POS_TOL_M = 2e-3
+#: Largest rotation angle (radians) between ``robot0_eef_rot_axis_angle`` and the CSV pose's rotation of a match.
+SEGMENT_ROT_TOL_RAD = 0.01
+#: UMI's plan of the dataset episodes (06_generate_dataset_plan.py), read for ``cameras[0].video_start_end``.
+PLAN_NAME = "dataset_plan.pkl"
+
+
+@dataclass
+class _Episodes:
+    """What the segment matching reads from ``dataset.zarr.zip`` (all steps concatenated)."""
+
+    path: Path
+    lengths: np.ndarray  # [E] steps
+    width: np.ndarray  # [N] metres
+    pos: np.ndarray | None  # [N, 3] TCP positions, metres (None: key absent)
+    rotvec: np.ndarray | None  # [N, 3]
+
+    def starts(self) -> np.ndarray:
+        return np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)
+
+
+def _read_episodes(zp: Path) -> _Episodes | None:
+    """The dataset's episode lengths, widths and TCP poses; None when it cannot be read (the augment preflight
+    reports the dataset's own problems)."""
     from umi_aug.data import ReplayBuffer
 
     try:
         with ReplayBuffer.open(zp) as buf:
-            if buf.n_episodes != len(demos) or "robot0_gripper_width" not in buf:
-                return
-            for i, d in enumerate(demos):
-                w = np.asarray(buf.get_episode(i, ["robot0_gripper_width"])["robot0_gripper_width"],
-                               dtype=np.float64).reshape(-1)
-                if len(w) == len(d):
-                    d.gripper_width = w
+            if "robot0_gripper_width" not in buf:
+                return None
+            lengths = np.asarray(buf.episode_lengths, dtype=np.int64)
+            w = np.asarray(buf["robot0_gripper_width"][:], dtype=np.float64)
+            width = w.reshape(len(w), -1)[:, 0]
+            pos = np.asarray(buf["robot0_eef_pos"][:], np.float64) if "robot0_eef_pos" in buf else None
+            rot = (np.asarray(buf["robot0_eef_rot_axis_angle"][:], np.float64)
+                   if "robot0_eef_rot_axis_angle" in buf else None)
     except UmiAugError:
-        return
+        return None
+    return _Episodes(zp, lengths, width, pos, rot)
+
+
+def _segment_error(ep: _Episodes, e: int, T_world_tcp: np.ndarray) -> tuple[float, float]:
+    """(max position error m, max rotation error rad) of episode ``e`` against TCP poses ``[L, 4, 4]``."""
+    from scipy.spatial.transform import Rotation
+
+    a = int(ep.starts()[e])
+    sl = slice(a, a + int(ep.lengths[e]))
+    dp = float(np.linalg.norm(ep.pos[sl] - T_world_tcp[:, :3, 3], axis=1).max()) if ep.pos is not None else 0.0
+    dr = 0.0
+    if ep.rotvec is not None:
+        rel = Rotation.from_rotvec(ep.rotvec[sl]).inv() * Rotation.from_matrix(T_world_tcp[:, :3, :3])
+        dr = float(np.max(rel.magnitude()))
+    return dp, dr
+
+
+def _tcp_poses(demos: list[ImageSequence]) -> dict[int, np.ndarray]:
+    from umi_aug.geometry.umi import umi_T_cam_tcp
+
+    T_cam_tcp = umi_T_cam_tcp()
+    return {i: d.T_world_cam @ T_cam_tcp for i, d in enumerate(demos) if d.T_world_cam is not None}
+
+
+def _segments_from_plan(root: Path, ep: _Episodes, demos: list[ImageSequence]) -> list[tuple[int, int]]:
+    """``(demo, start frame)`` per episode from UMI's ``dataset_plan.pkl`` (``cameras[0].video_start_end``),
+    checked against the videos, the tracking and (when the dataset has them) the TCP poses."""
+    import pickle
+
+    p = root / PLAN_NAME
+    try:
+        with open(p, "rb") as f:
+            plan = pickle.load(f)  # the user's own pipeline output (UMI writes it with pickle)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure is the same bad-input error
+        raise ReconError(f"{p}: unreadable ({type(exc).__name__}: {exc}); re-run UMI's 06_generate_dataset_plan "
+                         f"or remove it (episodes are then matched by their TCP poses)") from exc
+    if not isinstance(plan, list) or len(plan) != len(ep.lengths):
+        n = len(plan) if isinstance(plan, list) else type(plan).__name__
+        raise ReconError(f"{p}: {n} planned episodes but {ep.path} has {len(ep.lengths)}; the plan belongs to "
+                         f"another dataset (07_generate_replay_buffer writes one episode per plan entry)")
+    by_name = {d.name: i for i, d in enumerate(demos)}
+    tcp = _tcp_poses(demos)
+    out = []
+    for e, item in enumerate(plan):
+        try:
+            cam = item["cameras"][0]
+            video = Path(str(cam["video_path"]))
+            s, t = (int(v) for v in cam["video_start_end"])
+        except (KeyError, IndexError, TypeError, ValueError) as exc:
+            raise ReconError(f"{p}: episode {e}: no readable cameras[0].video_path / video_start_end "
+                             f"({exc!r})") from exc
+        di = by_name.get(video.parent.name)
+        where = f"{p}: episode {e} (cameras[0] = {video}, video_start_end = ({s}, {t}))"
+        if di is None:
+            raise ReconError(f"{where}: no demo folder {video.parent.name} with {VIDEO_NAME} and "
+                             f"camera_trajectory.csv under {root / 'demos'}")
+        d = demos[di]
+        if t - s != int(ep.lengths[e]) or not 0 <= s < t <= d.n_frames:
+            raise ReconError(f"{where}: {t - s} frames, but the dataset's episode {e} has {int(ep.lengths[e])} steps "
+                             f"and {d.source} {d.n_frames} frames")
+        if not d.valid[s:t].all():
+            k = s + int(np.flatnonzero(~d.valid[s:t])[0])
+            raise ReconError(f"{where}: frame {k} is lost in {root / 'demos' / d.name / 'camera_trajectory.csv'}; "
+                             f"UMI's episodes are tracked segments: the plan belongs to another SLAM run")
+        dp, dr = _segment_error(ep, e, tcp[di][s:t])
+        if dp > SEGMENT_POS_TOL_M or dr > SEGMENT_ROT_TOL_RAD:
+            raise ReconError(f"{where}: the dataset's robot0_eef_pos/rot differ from the TCP of "
+                             f"camera_trajectory.csv by up to {dp:.4f} m / {dr:.4f} rad (tolerance "
+                             f"{SEGMENT_POS_TOL_M} m / {SEGMENT_ROT_TOL_RAD} rad); plan, dataset and session disagree")
+        out.append((di, s))
+    return out
+
+
+def _segments_by_tcp(ep: _Episodes, demos: list[ImageSequence]) -> list[tuple[int, int]]:
+    """``(demo, start frame)`` per episode: the tracked segment of a demo video whose TCP positions (camera pose
+    ∘ UMI's camera→TCP offset, tag frame) match the episode's ``robot0_eef_pos`` on every frame within
+    :data:`SEGMENT_POS_TOL_M` (and its rotations within :data:`SEGMENT_ROT_TOL_RAD`). Episodes are searched in the
+    demo of the previous episode first (UMI writes them in demo order), then in the other demos."""
+    if ep.pos is None:
+        raise ReconError(f"{ep.path}: {len(ep.lengths)} episodes of {ep.lengths.tolist()[:8]} steps do not map "
+                         f"one-to-one onto the {len(demos)} demo videos ({[d.n_frames for d in demos][:8]} frames) and "
+                         f"there is no key 'data/robot0_eef_pos' to match them by; add UMI's {PLAN_NAME}")
+    tcp = _tcp_poses(demos)
+    starts = ep.starts()
+    out: list[tuple[int, int]] = []
+    prev = 0
+    for e, L in enumerate(ep.lengths.tolist()):
+        P = ep.pos[starts[e]: starts[e] + L]
+        order = [prev] + [i for i in range(len(demos)) if i != prev]
+        found, nearest = None, (np.inf, "", -1)
+        for di in order:
+            if di not in tcp or demos[di].n_frames < L:
+                continue
+            d, Q = demos[di], tcp[di][:, :3, 3]
+            dist0 = np.linalg.norm(Q[: d.n_frames - L + 1] - P[0], axis=1)
+            dist0[~d.valid[: d.n_frames - L + 1]] = np.inf
+            if dist0.min() < nearest[0]:
+                nearest = (float(dist0.min()), d.name, int(np.argmin(dist0)))
+            best = None
+            for s in np.flatnonzero(dist0 <= SEGMENT_POS_TOL_M).tolist():
+                if not d.valid[s:s + L].all():
+                    continue
+                dp, dr = _segment_error(ep, e, tcp[di][s:s + L])
+                if dp <= SEGMENT_POS_TOL_M and dr <= SEGMENT_ROT_TOL_RAD and (best is None or dp < best[0]):
+                    best = (dp, s)
+            if best is not None:
+                found = (di, best[1])
+                break
+        if found is None:
+            near = (f"; nearest tracked start: {nearest[1]} frame {nearest[2]} at {nearest[0]:.4f} m"
+                    if np.isfinite(nearest[0]) else "")
+            raise ReconError(f"{ep.path}: episode {e} ({L} steps) matches no tracked segment of the demo videos "
+                             f"({', '.join(d.name for d in demos) or 'none'}): robot0_eef_pos must equal the TCP of "
+                             f"camera_trajectory.csv (tag frame via tx_slam_tag.json, UMI's camera→TCP offset, "
+                             f"tcp_offset {_tcp_offset():.3f} m) within {SEGMENT_POS_TOL_M} m on every frame{near}; "
+                             f"add UMI's {PLAN_NAME} to the session, or use the dataset made from this session")
+        out.append(found)
+        prev = found[0]
+    return out
+
+
+def _tcp_offset() -> float:
+    from umi_aug.geometry.umi import UMI_TCP_OFFSET
+
+    return float(UMI_TCP_OFFSET)
+
+
+def _assign_episodes(root: Path, demos: list[ImageSequence]) -> list[ImageSequence]:
+    """The demo sequences in the order of ``dataset.zarr.zip``'s episodes, each with its gripper widths.
+
+    One episode per whole video (episode lengths = video frames): the demos as they are. Otherwise the episodes
+    are UMI's valid SLAM segments (06_generate_dataset_plan: tracked runs of a video, lost frames dropped): each
+    episode's segment comes from ``dataset_plan.pkl`` when present, else from its TCP poses
+    (:func:`_segments_by_tcp`), and the demo is cropped to it (:meth:`ImageSequence.cropped`; named
+    ``<demo>_<first frame>`` when a video holds several episodes). No dataset (or one without widths): unchanged.
+    """
+    zp = root / "dataset.zarr.zip"
+    ep = _read_episodes(zp) if zp.exists() else None
+    if ep is None:
+        return demos
+    starts = ep.starts()
+    if len(ep.lengths) == len(demos) and all(int(L) == d.n_frames for L, d in zip(ep.lengths, demos)):
+        for e, d in enumerate(demos):
+            d.gripper_width = ep.width[starts[e]: starts[e] + d.n_frames].copy()
+        return demos
+    segs = _segments_from_plan(root, ep, demos) if (root / PLAN_NAME).is_file() else _segments_by_tcp(ep, demos)
+    per_demo = np.bincount([di for di, _ in segs], minlength=len(demos))
+    out = []
+    for e, (di, s) in enumerate(segs):
+        d, L = demos[di], int(ep.lengths[e])
+        seq = d.cropped(s, s + L, d.name if per_demo[di] == 1 else f"{d.name}_{s:06d}")
+        seq.gripper_width = ep.width[starts[e]: starts[e] + L].copy()
+        out.append(seq)
+    used = [d.name for i, d in enumerate(demos) if per_demo[i] == 0]
+    log.info("%s: %d episodes matched to segments of %d demo videos%s", zp, len(out), len(demos) - len(used),
+             f" ({len(used)} videos without an episode: {', '.join(used[:5])})" if used else "")
+    return out
 
 
 def check_image_sizes(paths: list[Path], intr: FisheyeIntrinsics, every: int = 1) -> None:
@@ -335,7 +540,8 @@ def load_session(root: str | os.PathLike, intrinsics: FisheyeIntrinsics | str | 
         check_every: old ``images/`` layout only: check the size of every this-many-th frame (1 = all).
     Raises:
         ReconError: missing folders/files, an unreadable video, a CSV whose rows / frame indices / timestamps
-            disagree with its video, sequences of different frame sizes, intrinsics of another size than the frames.
+            disagree with its video, sequences of different frame sizes, intrinsics of another size than the frames,
+            dataset episodes that match no tracked video segment (naming the episode and the tolerance).
     """
     root = Path(root)
     if not (root / "demos").is_dir():
@@ -351,7 +557,7 @@ def load_session(root: str | os.PathLike, intrinsics: FisheyeIntrinsics | str | 
             log.warning("%s: no %s; demo skipped", d, VIDEO_NAME)
             continue
         demos.append(_sequence(d, d.name, d / "camera_trajectory.csv", T_tag_slam))
-    _widths(root, demos)
+    demos = _assign_episodes(root, demos)
     w, h = mapping.frame_size
     for s in demos:
         if s.frame_size != (w, h):
