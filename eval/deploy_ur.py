@@ -1,8 +1,10 @@
-"""Run a policy on a real UR arm (ur-rtde) with a WSG-50 and a UVC camera — a Hydra app.
+"""Run a policy on a real UR arm (ur-rtde) with a WSG-50 and a UVC camera, or on the simulated UR5e — a Hydra app.
 
     python eval/deploy_ur.py robot=ur5e checkpoint=PATH out_dir=deploy_runs/try1
     python eval/deploy_ur.py robot=ur5e policy=reach out_dir=deploy_runs/reach   # scripted reach, no checkpoint
     python eval/deploy_ur.py robot=ur5e checkpoint=PATH dry_run=true            # nothing is sent to the robot
+    python eval/deploy_ur.py robot=sim_ur5e policy=reach out_dir=deploy_runs/sim  # simulated UR5e (MuJoCo)
+    python eval/deploy_ur.py robot=sim_ur5e checkpoint=PATH out_dir=deploy_runs/sim_ckpt
     python eval/deploy_ur.py --cfg job                                          # print the composed config
 
 Writes ``out_dir/{episode.zarr.zip, episode.mp4, tcp_commanded_vs_reached.png, timing.json, deploy_ur.log}``.

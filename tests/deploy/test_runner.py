@@ -43,6 +43,10 @@ def test_select_actions_drops_past_and_falls_back_to_next_slot():
     assert n == 7 and np.array_equal(kept, a[-1:]) and np.allclose(due, [11.3])
     kept, due, n = select_actions(a, 10.0, 11.295, 0.1, 0.01, 9.0)  # next slot too close → one more dt
     assert np.allclose(due, [11.4])
+    # a lead of several dt (exec + action latency, slow CPU policy): still the first slot after now + lead,
+    # so the latency-compensated time (due − action latency) is not in the past
+    kept, due, n = select_actions(a, 10.0, 11.234, 0.1, 0.4, 9.0)
+    assert np.allclose(due, [11.7])
 
 
 def test_cycle_timing_latency_compensation_and_sleep_schedule():

@@ -12,6 +12,8 @@ Stage order: sits above :mod:`umi_aug.policy` and uses only public APIs of lower
 * :mod:`~umi_aug.deploy.wsg50` — WSG-50 binary protocol driver and gripper process (metres);
 * :mod:`~umi_aug.deploy.camera` — UVC capture via OpenCV, receive timestamps, UMI's policy-image transform;
 * :mod:`~umi_aug.deploy.device_process` — the child-process wrapper shared by robot and gripper;
+* :mod:`~umi_aug.deploy.sim_ur5e` — a simulated UR5e (MuJoCo), gripper and fisheye wrist camera behind the same
+  interfaces (``robot=sim_ur5e``, ``backend: sim``);
 * :mod:`~umi_aug.deploy.policies` — scripted policies (reach); :mod:`~umi_aug.deploy.recorder` — zarr + mp4 +
   plot + timing; :mod:`~umi_aug.deploy.app` — assembles one episode from the config (``eval/deploy_ur.py``).
 

@@ -1,7 +1,7 @@
 """Assemble and run one deployment episode from a config mapping (what ``eval/deploy_ur.py`` calls).
 
 Config keys (``configs/deploy_ur.yaml`` + ``configs/robot/*.yaml`` + ``configs/deploy_policy/*.yaml``):
-``robot.{robot,gripper,camera,safety}``, ``policy.{kind,...}``, ``checkpoint``, ``out_dir``, ``dry_run``, ``dt``,
+``robot.{backend,robot,gripper,camera,safety}``, ``policy.{kind,...}``, ``checkpoint``, ``out_dir``, ``dry_run``, ``dt``,
 ``steps_per_inference``, ``max_duration``, ``start_delay``, ``n_cycles``, ``device``, ``reach_tolerance_m``.
 """
 
@@ -54,6 +54,30 @@ def _build_policy(cfg: Mapping[str, Any], fps: float) -> tuple[Any, ObsSpec, flo
     raise DeployError(f"policy.kind={kind!r}; expected 'checkpoint' or 'reach'")
 
 
+def _build_backends(rc: Mapping[str, Any]) -> tuple[Any, Any, Any, list[Any], tuple[Any, Any, Any]]:
+    """Robot, gripper and camera backends from ``robot.backend``: ``rtde`` (ur-rtde arm, WSG-50, UVC camera) or
+    ``sim`` (the simulated UR5e of :mod:`umi_aug.deploy.sim_ur5e`). Returns ``(camera, gripper, robot, start
+    order, (robot cfg, gripper cfg, camera cfg))``; nothing is started."""
+    backend = rc.get("backend", "rtde")
+    if backend == "rtde":
+        ur = URConfig.from_mapping(rc.get("robot") or {}, "robot.robot")
+        wsg = WSGConfig.from_mapping(rc.get("gripper") or {}, "robot.gripper")
+        cam_cfg = _camera_cfg(rc.get("camera") or {})
+        camera, gripper, robot = UVCCamera(cam_cfg), WSG50Gripper(wsg), URRTDERobot(ur)
+        return camera, gripper, robot, [camera, gripper, robot], (ur, wsg, cam_cfg)
+    if backend == "sim":
+        from umi_aug.deploy.sim_ur5e import (SimCameraConfig, SimFisheyeCamera, SimGripper, SimGripperConfig,
+                                             SimUR5eRobot, SimURConfig, base_pose_matrix)
+
+        ur = SimURConfig.from_mapping(rc.get("robot") or {}, "robot.robot")
+        grip_cfg = SimGripperConfig.from_mapping(rc.get("gripper") or {}, "robot.gripper")
+        cam_cfg = SimCameraConfig.from_mapping(rc.get("camera") or {}, "robot.camera")
+        robot, gripper = SimUR5eRobot(ur), SimGripper(grip_cfg)
+        camera = SimFisheyeCamera(cam_cfg, robot, gripper, base_pose_matrix(ur.base_pose))
+        return camera, gripper, robot, [gripper, robot, camera], (ur, grip_cfg, cam_cfg)
+    raise DeployError(f"robot.backend={backend!r}; expected 'rtde' (a real arm) or 'sim' (simulated UR5e)")
+
+
 def run_deploy(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Connect, run one episode, halt, record. Returns the summary (also ``out_dir/timing.json``).
 
@@ -64,12 +88,11 @@ def run_deploy(cfg: Mapping[str, Any]) -> dict[str, Any]:
     if extra:
         raise DeployError(f"deploy config: unknown key(s) {extra}; known: {sorted(RUN_KEYS)}")
     rc = cfg.get("robot") or {}
-    unknown = sorted(set(rc) - {"robot", "gripper", "camera", "safety"})
+    unknown = sorted(set(rc) - {"backend", "robot", "gripper", "camera", "safety"})
     if unknown:
-        raise DeployError(f"robot config: unknown block(s) {unknown}; expected robot, gripper, camera, safety")
-    ur = URConfig.from_mapping(rc.get("robot") or {}, "robot.robot")
-    wsg = WSGConfig.from_mapping(rc.get("gripper") or {}, "robot.gripper")
-    cam_cfg = _camera_cfg(rc.get("camera") or {})
+        raise DeployError(f"robot config: unknown block(s) {unknown}; expected backend, robot, gripper, camera, "
+                          f"safety")
+    camera, gripper, robot, start_order, (ur, wsg, cam_cfg) = _build_backends(rc)
     limits = SafetyLimits.from_mapping(rc.get("safety") or {}, "robot.safety")
     policy, spec, dt = _build_policy(cfg, cam_cfg.fps)
     task = getattr(policy, "task", None)  # a checkpoint: the whole predicted horizon, as UMI's action_pred
@@ -80,11 +103,11 @@ def run_deploy(cfg: Mapping[str, Any]) -> dict[str, Any]:
                            max_duration=float(cfg.get("max_duration", 60.0)), dry_run=bool(cfg.get("dry_run")),
                            n_action_steps=int(task.action_horizon) if task is not None else None)
     out_dir = Path(cfg.get("out_dir") or "deploy_runs/latest")
-    camera, gripper, robot = UVCCamera(cam_cfg), WSG50Gripper(wsg), URRTDERobot(ur)
     started: list[Any] = []
-    summary: dict[str, Any] = {"dry_run": run_cfg.dry_run, "dt": dt, "policy": type(policy).__name__}
+    summary: dict[str, Any] = {"dry_run": run_cfg.dry_run, "dt": dt, "policy": type(policy).__name__,
+                               "backend": rc.get("backend", "rtde")}
     try:
-        for dev in (camera, gripper, robot):
+        for dev in start_order:
             dev.start()
             started.append(dev)
         rec = EpisodeRecorder(robot, gripper, camera)
@@ -105,6 +128,9 @@ def run_deploy(cfg: Mapping[str, Any]) -> dict[str, Any]:
                 final = robot.get_states(1)["tcp_pose"][-1] if robot in started else runner.cycles[-1].tcp_pose
                 dpos, drot = pose_distance(final, policy.target)
                 summary["final_error_m"], summary["final_error_rad"] = dpos, drot
+            for dev in started:  # the simulation's own counters (real-time keeping, rendered frames)
+                if hasattr(dev, "sim_stats"):
+                    summary.setdefault("sim", {}).update(dev.sim_stats())
             summary.update(rec.save(out_dir, fps=1.0 / (dt * run_cfg.steps_per_inference), extra=summary))
     finally:
         for dev in reversed(started):

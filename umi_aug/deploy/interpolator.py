@@ -8,12 +8,13 @@ gripper width and the observation alignment.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from umi_aug.errors import DeployError
 from umi_aug.geometry.se3 import pos_rotvec_to_pose, pose_to_pos_rotvec
 from umi_aug.geometry.interp import interpolate_pose
-from umi_aug.geometry.so3 import so3_log
+from umi_aug.geometry.so3 import so3_exp, so3_log
 
 __all__ = ["PoseTrajectoryInterpolator", "ScalarTrajectoryInterpolator", "pose_distance"]
 
@@ -46,9 +47,37 @@ class PoseTrajectoryInterpolator:
         self.times = t
         self.poses = p
         self._T = pos_rotvec_to_pose(p)
+        # per segment: log(R_iᵀ R_{i+1}) once, so a query costs one exp + one log (the 500 Hz servo loop);
+        # the same slerp as interpolate_pose (the reference, reference_call)
+        R = self._T[:, :3, :3]
+        self._delta = so3_log(np.swapaxes(R[:-1], -1, -2) @ R[1:]) if len(t) > 1 else np.zeros((0, 3))
 
     def __call__(self, t: float | np.ndarray) -> np.ndarray:
         """Pose(s) at time(s) ``t``: [6] for a scalar, [M, 6] for an array."""
+        ts = np.atleast_1d(np.asarray(t, np.float64))
+        if len(self.times) == 1:
+            out = np.repeat(self.poses, len(ts), axis=0)
+        else:
+            tc = np.clip(ts, self.times[0], self.times[-1])
+            i = np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, len(self.times) - 2)
+            s = (tc - self.times[i]) / (self.times[i + 1] - self.times[i])
+            p0, p1 = self.poses[i, :3], self.poses[i + 1, :3]
+            pos = np.where((s == 1.0)[:, None], p1, p0 + s[:, None] * (p1 - p0))
+            if len(ts) == 1:  # the servo loop's query: OpenCV's Rodrigues (C) for exp and log
+                k = int(i[0])
+                if s[0] == 1.0:
+                    R = self._T[k + 1, :3, :3]
+                else:
+                    R = self._T[k, :3, :3] @ cv2.Rodrigues(s[0] * self._delta[k])[0]
+                out = np.concatenate([pos, cv2.Rodrigues(np.ascontiguousarray(R))[0].reshape(1, 3)], 1)
+            else:
+                R = self._T[i, :3, :3] @ so3_exp(s[:, None] * self._delta[i])
+                R = np.where((s == 1.0)[:, None, None], self._T[i + 1, :3, :3], R)
+                out = np.concatenate([pos, so3_log(R)], 1)
+        return out[0] if np.ndim(t) == 0 else out
+
+    def reference_call(self, t: float | np.ndarray) -> np.ndarray:
+        """:meth:`__call__` through :func:`umi_aug.geometry.interp.interpolate_pose` (slow reference)."""
         ts = np.atleast_1d(np.asarray(t, np.float64))
         if len(self.times) == 1:
             out = np.repeat(self.poses, len(ts), axis=0)

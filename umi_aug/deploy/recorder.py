@@ -84,7 +84,9 @@ class EpisodeRecorder:
         if self.robot_t:
             rt = np.concatenate(self.robot_t)
             stats["control_period"] = timing_stats(np.diff(rt))
-            self._plot(out / "tcp_commanded_vs_reached.png", rt, np.concatenate(self.robot_pose))
+            rp = np.concatenate(self.robot_pose)
+            stats["tcp_displacement_m"] = float(np.linalg.norm(rp[-1, :3] - rp[0, :3]))  # first → last state
+            self._plot(out / "tcp_commanded_vs_reached.png", rt, rp)
         (out / "timing.json").write_text(json.dumps(stats, indent=2))
         return stats
 

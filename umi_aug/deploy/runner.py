@@ -103,15 +103,14 @@ def select_actions(actions: np.ndarray, t_obs_last: float, now: float, dt: float
     """UMI's action scheduling: ``(kept actions, their due times, number dropped)``.
 
     Action ``k`` is due at ``t_obs_last + k·dt``; those not later than ``now + exec_latency`` are dropped. If all
-    are, the last action is kept and due at the next slot ``t_start + ceil((now − t_start)/dt)·dt``.
+    are, the last action is kept and due at the first slot ``t_start + k·dt`` after ``now + exec_latency``.
     """
     ts = t_obs_last + np.arange(len(actions)) * dt
     keep = ts > now + exec_latency
     if keep.any():
         return actions[keep], ts[keep], int((~keep).sum())
-    nxt = t_start + math.ceil((now - t_start) / dt) * dt
-    if nxt <= now + exec_latency:
-        nxt += dt
+    # the first slot strictly after now + exec_latency (one extra dt was not enough for a lead longer than dt)
+    nxt = t_start + (math.floor((now + exec_latency - t_start) / dt) + 1) * dt
     return actions[-1:], np.array([nxt]), len(actions) - 1
 
 

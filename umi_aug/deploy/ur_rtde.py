@@ -202,8 +202,13 @@ class URRTDERobot(DeviceProcess):
     Times are ``time.monotonic`` seconds (one clock for all processes of the machine).
     """
 
-    def __init__(self, cfg: URConfig, ctx: Any = None, capacity: int = 2048, connect_timeout_s: float = 10.0) -> None:
-        super().__init__(f"robot controller {cfg.robot_ip}", STATE_FIELDS, capacity, ctx, connect_timeout_s)
+    #: the child's entry point ``main(cfg, heartbeat, commands, state, stop_event, errors)``; the simulated UR5e
+    #: (:class:`umi_aug.deploy.sim_ur5e.SimUR5eRobot`) swaps in its own servo loop, everything else is shared
+    process_main = staticmethod(_process_main)
+
+    def __init__(self, cfg: Any, ctx: Any = None, capacity: int = 2048, connect_timeout_s: float = 10.0,
+                 what: str | None = None) -> None:
+        super().__init__(what or f"robot controller {cfg.robot_ip}", STATE_FIELDS, capacity, ctx, connect_timeout_s)
         self.cfg = cfg
         self._heartbeat = self._ctx.Value("d", time.monotonic(), lock=False)
         self._beating = threading.Event()
@@ -213,7 +218,7 @@ class URRTDERobot(DeviceProcess):
         """Start the controller process, wait for its first state, then beat the heartbeat from a thread of
         this process every 0.1 s (the watchdog catches a dead or frozen runner process, not a slow policy)."""
         self._heartbeat.value = time.monotonic() + self.connect_timeout_s  # grace while connecting
-        self._start_process(_process_main, self.cfg, self._heartbeat)
+        self._start_process(self.process_main, self.cfg, self._heartbeat)
         self._beating.clear()
         self._beat_thread = threading.Thread(target=self._beat, name="ur_rtde_heartbeat", daemon=True)
         self._beat_thread.start()

@@ -27,9 +27,13 @@ from umi_aug.deploy.shared_state import SharedStateBuffer
 from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
 
-__all__ = ["crc16", "encode_message", "decode_stream", "Status", "WSG50Driver", "WSGConfig", "WSG50Gripper"]
+__all__ = ["crc16", "encode_message", "decode_stream", "Status", "WSG50Driver", "WSGConfig", "WSG50Gripper",
+           "run_gripper_loop", "GRIPPER_STATE_FIELDS"]
 
 log = logging.getLogger(__name__)
+
+#: Record layout of the gripper state ring buffer (m, m/s, N).
+GRIPPER_STATE_FIELDS = {"timestamp": 1, "width": 1, "velocity": 1, "force": 1, "target": 1}
 PREAMBLE = b"\xaa\xaa\xaa"
 CMD_DISCONNECT, CMD_HOMING, CMD_PREPOSITION, CMD_STOP, CMD_ACK_FAULT = 0x07, 0x20, 0x21, 0x22, 0x24
 CMD_SCRIPT_MEASURE, CMD_SCRIPT_POSITION_PD = 0xB0, 0xB1
@@ -232,34 +236,43 @@ class WSGConfig:
         return c
 
 
+def run_gripper_loop(drv: Any, cfg: Any, commands: Any, state: SharedStateBuffer, stop_event: Any) -> None:
+    """The gripper control loop (UMI's ``WSGController``) on a connected driver: every ``1/cfg.frequency`` s
+    track the width interpolator (position + feed-forward velocity, ``position_pd``), push the measured state
+    (``timestamp = receive time − obs_latency``) and drain scheduled waypoints. ``drv`` has the
+    :class:`WSG50Driver` methods ``ack_fault``, ``homing``, ``measure``, ``position_pd`` (millimetres); the
+    simulated gripper (:mod:`umi_aug.deploy.sim_ur5e`) passes its own."""
+    drv.ack_fault()
+    if cfg.home_to_open:
+        drv.homing(True)
+    dt = 1.0 / cfg.frequency
+    w0 = drv.measure()["position"] / 1000.0
+    interp = PoseTrajectoryInterpolator([time.monotonic()], [[w0, 0, 0, 0, 0, 0]])
+    last_wp = None
+    t_start, it = time.monotonic(), 0
+    while not stop_event.is_set():
+        t_now = time.monotonic()
+        w = float(interp(t_now + dt)[0])
+        v = (w - float(interp(t_now)[0])) / dt
+        info = drv.position_pd(w * 1000.0, v * 1000.0)
+        state.put({"timestamp": time.monotonic() - cfg.obs_latency, "width": info["position"] / 1000.0,
+                   "velocity": info["velocity"] / 1000.0, "force": info["force"], "target": w})
+        while True:
+            try:
+                _, width, t_wp = commands.get_nowait()
+            except queue.Empty:
+                break
+            interp = interp.schedule_waypoint([width, 0, 0, 0, 0, 0], t_wp, cfg.max_speed, 1.0, t_now, last_wp)
+            last_wp = t_wp
+        it += 1
+        time.sleep(max(0.0, t_start + it * dt - time.monotonic()))
+
+
 def _gripper_main(cfg: WSGConfig, commands: Any, state: SharedStateBuffer, stop_event: Any, errors: Any) -> None:
     drv = WSG50Driver(cfg.gripper_ip, cfg.gripper_port)
     try:
         drv.connect()
-        drv.ack_fault()
-        if cfg.home_to_open:
-            drv.homing(True)
-        dt = 1.0 / cfg.frequency
-        w0 = drv.measure()["position"] / 1000.0
-        interp = PoseTrajectoryInterpolator([time.monotonic()], [[w0, 0, 0, 0, 0, 0]])
-        last_wp = None
-        t_start, it = time.monotonic(), 0
-        while not stop_event.is_set():
-            t_now = time.monotonic()
-            w = float(interp(t_now + dt)[0])
-            v = (w - float(interp(t_now)[0])) / dt
-            info = drv.position_pd(w * 1000.0, v * 1000.0)
-            state.put({"timestamp": time.monotonic() - cfg.obs_latency, "width": info["position"] / 1000.0,
-                       "velocity": info["velocity"] / 1000.0, "force": info["force"], "target": w})
-            while True:
-                try:
-                    _, width, t_wp = commands.get_nowait()
-                except queue.Empty:
-                    break
-                interp = interp.schedule_waypoint([width, 0, 0, 0, 0, 0], t_wp, cfg.max_speed, 1.0, t_now, last_wp)
-                last_wp = t_wp
-            it += 1
-            time.sleep(max(0.0, t_start + it * dt - time.monotonic()))
+        run_gripper_loop(drv, cfg, commands, state, stop_event)
     except BaseException as exc:  # noqa: BLE001 - reported to the runner
         errors.put(str(exc))
     finally:
@@ -269,14 +282,17 @@ def _gripper_main(cfg: WSGConfig, commands: Any, state: SharedStateBuffer, stop_
 class WSG50Gripper(DeviceProcess):
     """:class:`~umi_aug.deploy.interfaces.GripperInterface` for a WSG-50 (own process, ``frequency`` Hz)."""
 
-    def __init__(self, cfg: WSGConfig, ctx: Any = None, connect_timeout_s: float = 10.0) -> None:
-        super().__init__(f"gripper WSG-50 {cfg.gripper_ip}:{cfg.gripper_port}",
-                         {"timestamp": 1, "width": 1, "velocity": 1, "force": 1, "target": 1}, 256, ctx,
-                         connect_timeout_s)
+    #: the child's entry point ``main(cfg, commands, state, stop_event, errors)`` (the simulated gripper of
+    #: :mod:`umi_aug.deploy.sim_ur5e` swaps in its own driver; the loop is :func:`run_gripper_loop` for both)
+    process_main = staticmethod(_gripper_main)
+
+    def __init__(self, cfg: Any, ctx: Any = None, connect_timeout_s: float = 10.0, what: str | None = None) -> None:
+        super().__init__(what or f"gripper WSG-50 {cfg.gripper_ip}:{cfg.gripper_port}", GRIPPER_STATE_FIELDS, 256,
+                         ctx, connect_timeout_s)
         self.cfg = cfg
 
     def start(self) -> None:
-        self._start_process(_gripper_main, self.cfg)
+        self._start_process(self.process_main, self.cfg)
 
     def schedule_waypoint(self, width: float, t: float) -> None:
         self._cmd.put(("waypoint", float(width), float(t)))

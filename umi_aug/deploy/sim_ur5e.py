@@ -1,0 +1,669 @@
+"""A simulated UR5e behind the deployment interfaces (``robot=sim_ur5e``): arm, gripper and wrist camera, each
+in its own process like the real backends, so the runner code is the same for sim and real.
+
+* **arm** (:class:`SimUR5eRobot`): robosuite 1.4.1's UR5e MJCF (kinematics, inertias, torque limits; loaded with
+  ``mujoco.MjSpec``, a TCP site added ``tcp_offset`` along the flange axis) stepped by MuJoCo in real time at the
+  e-Series controller rate (500 Hz, one 2 ms physics step per period; a late period catches up). Each period does
+  what the ur-rtde controller process does with ``servoL``: the same commands (``("waypoint", pose, t)``), the
+  same :class:`~umi_aug.deploy.interpolator.PoseTrajectoryInterpolator` with the speed limits, the same state
+  record (:data:`~umi_aug.deploy.ur_rtde.STATE_FIELDS`) and heartbeat watchdog. The sampled TCP pose becomes
+  joint targets by damped-least-squares IK (warm-started from the last solution) ``response_latency`` later
+  (the real arm's response time, which the runner's ``action_latency`` compensates), tracked by joint PD control
+  with velocity feed-forward and gravity compensation within the UR5e's joint torque limits. The controller's protective stops are
+  mirrored: an unreachable target (IK residual) or a joint tracking error above the limit stop the arm with one
+  message. The robot base frame is the MJCF's base body frame.
+* **gripper** (:class:`SimGripper`): a two-finger parallel gripper, position controlled, width in metres, its
+  fingers move at most ``max_speed``; driven by the WSG-50 process loop (:func:`~umi_aug.deploy.wsg50.
+  run_gripper_loop`) through a simulated driver, so it is the WSG-50 interface and timing.
+* **camera** (:class:`SimFisheyeCamera`): the built-in tabletop scene (:func:`umi_aug.sim.scene.
+  build_tabletop_scene`) with its UMI gripper placed at ``T_world_base · T_base_tcp · T_cam_tcp⁻¹`` (UMI's
+  camera→TCP offset) and the fingers at the simulated width, rendered through the GoPro fisheye
+  (:class:`~umi_aug.sim.fisheye_renderer.FisheyeRenderer`, the 2.7K calibration scaled to ``width×height``) and
+  turned into the policy image exactly as the demo session's zarr images (:func:`umi_aug.camera.umi_image.
+  umi_policy_image`: gripper mask, centre crop, INTER_AREA). Frames are delivered ``latency`` seconds after the
+  state they show and stamped ``receive time − latency`` like the UVC camera. The arm itself is not drawn (it is
+  behind the wrist camera; the demo sessions have no arm either).
+"""
+
+from __future__ import annotations
+
+import collections
+import importlib.util
+import logging
+import multiprocessing as mp
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import cv2
+import numpy as np
+
+from umi_aug.deploy.clock import Clock, MonotonicClock
+from umi_aug.deploy.config_check import reject_unknown_keys
+from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
+from umi_aug.deploy.safety import SafetyStop
+from umi_aug.deploy.shared_state import SharedStateBuffer
+from umi_aug.deploy.ur_rtde import URRTDERobot
+from umi_aug.deploy.wsg50 import WSG50Gripper, run_gripper_loop
+from umi_aug.errors import DeployError
+from umi_aug.geometry.se3 import pos_rotvec_to_pose
+
+__all__ = ["SimURConfig", "SimGripperConfig", "SimCameraConfig", "UR5eSim", "SimServoLoop", "SimUR5eRobot",
+           "SimFingerDriver", "SimGripper", "SimFisheyeCamera", "ur5e_mjcf_path", "base_pose_matrix",
+           "JOINT_NAMES", "TCP_SITE"]
+
+log = logging.getLogger(__name__)
+
+JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
+               "wrist_3_joint")
+FLANGE_BODY = "right_hand"  # robosuite's UR5e: the tool flange frame, z out of the flange
+TCP_SITE = "umi_tcp"
+CONTROL_RATE_HZ = 500.0  # e-Series servoL rate
+_IK_DAMPING = 1e-2
+_IK_MAX_STEP = 0.05  # rad per iteration
+_IK_TOL_POS, _IK_TOL_ROT = 1e-6, 1e-5
+_ARMATURE = 0.1  # kg·m², per joint (UR harmonic drives, ratio ~100, reflect ~0.1 kg·m²)
+_MAX_CATCH_UP = 25  # physics steps one late period may add (50 ms); more is dropped (the sim slows down)
+
+
+def ur5e_mjcf_path(path: str | None = None) -> Path:
+    """The UR5e MJCF: ``path`` or robosuite 1.4.1's ``models/assets/robots/ur5e/robot.xml`` (found without
+    importing robosuite).
+
+    Raises:
+        DeployError: the file does not exist / robosuite is not installed.
+    """
+    if path:
+        p = Path(path)
+    else:
+        spec = importlib.util.find_spec("robosuite")
+        if spec is None or not spec.submodule_search_locations:
+            raise DeployError("robot.model=null needs robosuite's UR5e MJCF: pip install 'umi-aug[robomimic]' "
+                              "(robosuite==1.4.1), or set robot.model to a UR5e MJCF file")
+        p = Path(list(spec.submodule_search_locations)[0]) / "models/assets/robots/ur5e/robot.xml"
+    if not p.is_file():
+        raise DeployError(f"robot.model={str(p)!r}: no such MJCF file")
+    return p
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of a 3×3 rotation (OpenCV's Rodrigues, C; the same as :func:`umi_aug.geometry.so3.so3_log`
+    up to rounding — the 500 Hz loop calls it several times a period)."""
+    return cv2.Rodrigues(np.ascontiguousarray(R, dtype=np.float64))[0].reshape(3)
+
+
+def base_pose_matrix(base_pose: list[float]) -> np.ndarray:
+    """``[x, y, z, yaw_deg]`` of the robot base in the scene (table-tag) frame → ``T_world_base`` [4, 4]."""
+    x, y, z, yaw = (float(v) for v in base_pose)
+    c, s = np.cos(np.deg2rad(yaw)), np.sin(np.deg2rad(yaw))
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def _positive(where: str, obj: Any, keys: tuple[str, ...]) -> None:
+    for k in keys:
+        v = getattr(obj, k)
+        if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+            raise DeployError(f"{where}.{k}={v!r} must be a number > 0")
+
+
+@dataclass
+class SimURConfig:
+    """The ``robot:`` block of ``configs/robot/sim_ur5e.yaml`` (the fields the runner shares with
+    :class:`~umi_aug.deploy.ur_rtde.URConfig`, plus the simulation's).
+
+    Attributes:
+        robot_type: ``ur5e`` (500 Hz). tcp_offset: TCP along the flange axis (m).
+        obs_latency, action_latency: as the real robot (s). max_pos_speed, max_rot_speed: interpolator limits.
+        watchdog_s: stop when the runner has not beaten the heartbeat for this long (s).
+        joints_init: start joint angles (deg). base_pose: ``[x, y, z, yaw_deg]`` of the base in the scene.
+        response_latency: the arm follows the servo target this much later (s; the real arm's response, which
+            ``action_latency`` compensates; 0 = immediately).
+        max_joint_speed: joint target speed limit (rad/s; the UR5e's 180°/s).
+        kp: joint PD stiffness per joint (N·m/rad); damping is critical for the link inertia (``kd_ratio``).
+        max_tracking_error_rad: joint tracking error that triggers the protective stop.
+        max_ik_error_m: IK residual (m) that, held for ``unreachable_s``, triggers the protective stop.
+        model: UR5e MJCF path (null: robosuite's).
+    """
+
+    robot_type: str = "ur5e"
+    tcp_offset: float = 0.235
+    obs_latency: float = 0.0001
+    action_latency: float = 0.1
+    max_pos_speed: float = 0.25
+    max_rot_speed: float = 0.6
+    watchdog_s: float = 1.0
+    joints_init: list[float] = field(default_factory=lambda: [-107.3, -98.0, 90.8, -82.8, -90.0, 162.7])
+    base_pose: list[float] = field(default_factory=lambda: [0.0, -0.35, 0.0, 180.0])
+    kp: list[float] = field(default_factory=lambda: [3000.0, 3000.0, 2000.0, 400.0, 400.0, 200.0])
+    kd_ratio: float = 1.0
+    response_latency: float = 0.1
+    max_joint_speed: float = float(np.pi)
+    max_tracking_error_rad: float = 0.2
+    max_ik_error_m: float = 0.005
+    unreachable_s: float = 0.1
+    model: str | None = None
+
+    @property
+    def frequency(self) -> float:
+        return CONTROL_RATE_HZ
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any], where: str = "robot") -> "SimURConfig":
+        reject_unknown_keys(m, cls.__dataclass_fields__, where)
+        c = cls(**{k: (list(v) if isinstance(v, (list, tuple)) else v) for k, v in m.items()})
+        if c.robot_type != "ur5e":
+            raise DeployError(f"{where}.robot_type={c.robot_type!r}; the simulation has the 'ur5e' only")
+        _positive(where, c, ("action_latency", "max_pos_speed", "max_rot_speed", "watchdog_s", "kd_ratio",
+                             "max_joint_speed", "max_tracking_error_rad", "max_ik_error_m", "unreachable_s"))
+        if not 0 <= c.tcp_offset < 0.5:
+            raise DeployError(f"{where}.tcp_offset={c.tcp_offset} m must be in [0, 0.5)")
+        if not 0 <= c.response_latency <= 1.0:
+            raise DeployError(f"{where}.response_latency={c.response_latency} s must be in [0, 1]")
+        for k, n in (("joints_init", 6), ("base_pose", 4), ("kp", 6)):
+            v = getattr(c, k)
+            if len(v) != n or not np.isfinite(np.asarray(v, float)).all():
+                raise DeployError(f"{where}.{k} must be {n} finite numbers, got {v}")
+        if min(c.kp) <= 0:
+            raise DeployError(f"{where}.kp must be > 0, got {c.kp}")
+        return c
+
+
+class UR5eSim:
+    """MuJoCo UR5e: joint PD control with gravity compensation, TCP pose/speed, DLS inverse kinematics.
+
+    Args:
+        cfg: :class:`SimURConfig` (model path, TCP offset, gains).
+    """
+
+    def __init__(self, cfg: SimURConfig) -> None:
+        from umi_aug.sim.gl import import_mujoco
+
+        self._mj = mj = import_mujoco()
+        path = ur5e_mjcf_path(cfg.model)
+        try:
+            spec = mj.MjSpec.from_file(str(path))
+            spec.compiler.degree = False  # robosuite's MJCF gives radians (its arena's compiler setting)
+            flange = spec.body(FLANGE_BODY)
+            if flange is None:
+                raise DeployError(f"robot.model={str(path)!r}: no body {FLANGE_BODY!r} (the UR5e tool flange)")
+            flange.add_site(name=TCP_SITE, pos=[0.0, 0.0, float(cfg.tcp_offset)])
+            for name in JOINT_NAMES:  # reflected motor/gearbox inertia (the MJCF has none): keeps PD stable
+                j = spec.joint(name)
+                if j is not None:
+                    j.armature = _ARMATURE
+            self.model = spec.compile()
+        except ValueError as exc:
+            raise DeployError(f"robot.model={str(path)!r}: MuJoCo cannot compile it ({exc})") from exc
+        m = self.model
+        jids = [mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, n) for n in JOINT_NAMES]
+        if min(jids) < 0:
+            raise DeployError(f"robot.model={str(path)!r}: joints {JOINT_NAMES} not all found")
+        self.qadr = np.array([m.jnt_qposadr[j] for j in jids])
+        self.dadr = np.array([m.jnt_dofadr[j] for j in jids])
+        self.lo = np.array([m.jnt_range[j][0] for j in jids])
+        self.hi = np.array([m.jnt_range[j][1] for j in jids])
+        act = {int(m.actuator_trnid[a][0]): a for a in range(m.nu)}
+        self.tau_max = np.array([m.actuator_ctrlrange[act[j]][1] if j in act else 150.0 for j in jids])
+        self.site = mj.mj_name2id(m, mj.mjtObj.mjOBJ_SITE, TCP_SITE)
+        self.data = mj.MjData(m)
+        self._ik = mj.MjData(m)
+        self.kp = np.asarray(cfg.kp, float)
+        self.kd_ratio = float(cfg.kd_ratio)
+        self.dt = float(m.opt.timestep)
+        self._jacp, self._jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+
+    # ------------------------------------------------------------------ state
+    def reset(self, q: np.ndarray) -> None:
+        d = self.data
+        d.qpos[:] = 0.0
+        d.qvel[:] = 0.0
+        d.qpos[self.qadr] = q
+        self._mj.mj_forward(self.model, d)
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.data.qpos[self.qadr].copy()
+
+    @property
+    def qd(self) -> np.ndarray:
+        return self.data.qvel[self.dadr].copy()
+
+    def _site_T(self, d: Any) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = d.site_xmat[self.site].reshape(3, 3)
+        T[:3, 3] = d.site_xpos[self.site]
+        return T
+
+    def tcp_pose(self) -> np.ndarray:
+        """[6] TCP pose in the base frame (m, rotation vector)."""
+        d = self.data
+        return np.concatenate([d.site_xpos[self.site], _rotvec(d.site_xmat[self.site].reshape(3, 3))])
+
+    def tcp_speed(self) -> np.ndarray:
+        """[6] TCP linear (m/s) and angular (rad/s) velocity in the base frame (as ``getActualTCPSpeed``)."""
+        self._mj.mj_jacSite(self.model, self.data, self._jacp, self._jacr, self.site)
+        qd = self.data.qvel
+        return np.concatenate([self._jacp @ qd, self._jacr @ qd])
+
+    def fk(self, q: np.ndarray) -> np.ndarray:
+        """[4, 4] TCP pose at joints ``q`` (the IK's private data; the simulation state is not touched)."""
+        d = self._ik
+        d.qpos[self.qadr] = q
+        self._mj.mj_kinematics(self.model, d)
+        return self._site_T(d)
+
+    # ------------------------------------------------------------------ control
+    def ik(self, T_goal: np.ndarray, q0: np.ndarray, iters: int = 5) -> tuple[np.ndarray, float, float]:
+        """Damped least squares from ``q0`` towards the TCP pose ``T_goal`` [4, 4]:
+        ``dq = Jᵀ (J Jᵀ + λ² I)⁻¹ e`` with ``e`` = (position error, rotation error as a world-frame rotation vector),
+        steps clipped, joints within limits. Returns ``(q, position residual m, rotation residual rad)``."""
+        mj, m, d = self._mj, self.model, self._ik
+        q = np.asarray(q0, float).copy()
+        T = self.fk(q)
+        err = np.concatenate([T_goal[:3, 3] - T[:3, 3], _rotvec(T_goal[:3, :3] @ T[:3, :3].T)])
+        for _ in range(iters):
+            if np.linalg.norm(err[:3]) < _IK_TOL_POS and np.linalg.norm(err[3:]) < _IK_TOL_ROT:
+                break
+            mj.mj_comPos(m, d)
+            mj.mj_jacSite(m, d, self._jacp, self._jacr, self.site)
+            J = np.vstack([self._jacp[:, self.dadr], self._jacr[:, self.dadr]])
+            dq = J.T @ np.linalg.solve(J @ J.T + _IK_DAMPING**2 * np.eye(6), err)
+            n = np.abs(dq).max()
+            if n > _IK_MAX_STEP:
+                dq *= _IK_MAX_STEP / n
+            q = np.clip(q + dq, self.lo, self.hi)
+            T = self.fk(q)
+            err = np.concatenate([T_goal[:3, 3] - T[:3, 3], _rotvec(T_goal[:3, :3] @ T[:3, :3].T)])
+        return q, float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:]))
+
+    def step(self, q_target: np.ndarray, qd_target: np.ndarray | None = None) -> None:
+        """One physics step with joint PD torques towards ``q_target`` / ``qd_target`` (velocity feed-forward)
+        plus gravity/Coriolis compensation, clipped to the joint torque limits."""
+        m, d = self.model, self.data
+        inertia = np.maximum(d.qM[m.dof_Madr[self.dadr]], 1e-3)
+        kd = self.kd_ratio * 2.0 * np.sqrt(self.kp * inertia)
+        qd_t = 0.0 if qd_target is None else qd_target
+        tau = self.kp * (q_target - self.q) + kd * (qd_t - self.qd) + d.qfrc_bias[self.dadr]
+        d.qfrc_applied[self.dadr] = np.clip(tau, -self.tau_max, self.tau_max)
+        self._mj.mj_step(m, d)
+
+
+class SimServoLoop:
+    """The simulated controller loop (the counterpart of :class:`~umi_aug.deploy.ur_rtde.URServoLoop`; runnable
+    in-thread with a fake clock).
+
+    Args:
+        cfg: :class:`SimURConfig`. commands: queue of ``("waypoint", pose[6], t)`` / ``("stop",)``.
+        state: ring buffer with :data:`~umi_aug.deploy.ur_rtde.STATE_FIELDS`. stop_event: set → leave.
+        heartbeat: shared double, the runner's last heartbeat. clock: time base (``time.monotonic``).
+    """
+
+    def __init__(self, cfg: SimURConfig, commands: Any, state: SharedStateBuffer, stop_event: Any, heartbeat: Any,
+                 clock: Clock | None = None, stats: Any = None) -> None:
+        self.cfg, self.commands, self.state, self.stop_event = cfg, commands, state, stop_event
+        self.heartbeat = heartbeat
+        self.clock = clock or MonotonicClock()
+        self.n_periods = 0
+        self.n_physics_steps = 0
+        self.n_dropped_steps = 0
+        self.stats = stats  # optional shared [periods, physics steps, dropped steps]
+
+    def run(self, sim: UR5eSim | None = None) -> None:
+        cfg = self.cfg
+        sim = sim or UR5eSim(cfg)
+        sim.reset(np.deg2rad(cfg.joints_init))
+        dt = 1.0 / cfg.frequency
+        n_sub = max(1, int(round(dt / sim.dt)))
+        t0 = self.clock.now()
+        interp = PoseTrajectoryInterpolator([t0], [sim.tcp_pose()])
+        q_target = sim.q
+        last_wp: float | None = None
+        t_bad: float | None = None
+        delayed: collections.deque = collections.deque()
+        while not self.stop_event.is_set():
+            t_now = t_period = self.clock.now()
+            age = t_now - float(self.heartbeat.value)
+            if age > cfg.watchdog_s:
+                raise SafetyStop(f"watchdog: no heartbeat from the runner for {age:.2f} s > robot.watchdog_s="
+                                 f"{cfg.watchdog_s}")
+            pose = interp(t_now)
+            delayed.append((t_now, pose))  # the arm acts on the servo target response_latency later
+            while len(delayed) > 1 and delayed[1][0] <= t_now - cfg.response_latency:
+                delayed.popleft()
+            # physics keeps up with the wall clock: late periods take extra steps (at most _MAX_CATCH_UP)
+            due = int((t_now - t0) / sim.dt) + n_sub - self.n_physics_steps - self.n_dropped_steps
+            n = min(max(due, 1), _MAX_CATCH_UP)
+            self.n_dropped_steps += max(due - n, 0)
+            q_prev = q_target
+            q_ik, pos_err, rot_err = sim.ik(pos_rotvec_to_pose(delayed[0][1]), q_target)
+            # the controller's joint speed limit (UR5e: 180°/s): the joint target moves at most this fast
+            lim = cfg.max_joint_speed * n * sim.dt
+            q_target = q_prev + np.clip(q_ik - q_prev, -lim, lim)
+            if pos_err > cfg.max_ik_error_m:
+                t_bad = t_now if t_bad is None else t_bad
+                if t_now - t_bad > cfg.unreachable_s:
+                    raise SafetyStop(f"protective stop (sim): target TCP pose {np.round(pose[:3], 4).tolist()} m is "
+                                     f"unreachable (IK residual {1000 * pos_err:.1f} mm for {t_now - t_bad:.2f} s)")
+            else:
+                t_bad = None
+            # the joint target moves linearly from the last period's over the n steps (velocity feed-forward)
+            qd_target = (q_target - q_prev) / (n * sim.dt) if self.n_periods else np.zeros(6)
+            for j in range(1, n + 1):
+                sim.step(q_prev + (q_target - q_prev) * (j / n), qd_target)
+            self.n_physics_steps += n
+            track = float(np.abs(q_target - sim.q).max())
+            if track > cfg.max_tracking_error_rad:
+                raise SafetyStop(f"protective stop (sim): joint tracking error {track:.3f} rad > "
+                                 f"robot.max_tracking_error_rad={cfg.max_tracking_error_rad}")
+            self.state.put({"timestamp": self.clock.now() - cfg.obs_latency, "tcp_pose": sim.tcp_pose(),
+                            "tcp_speed": sim.tcp_speed(), "q": sim.q, "qd": sim.qd, "target_pose": pose})
+            while True:
+                try:
+                    cmd = self.commands.get_nowait()
+                except queue.Empty:
+                    break
+                if cmd[0] == "stop":
+                    return
+                _, wp, t_wp = cmd
+                interp = interp.schedule_waypoint(np.asarray(wp, float), float(t_wp), cfg.max_pos_speed,
+                                                  cfg.max_rot_speed, curr_time=t_now + dt, last_waypoint_time=last_wp)
+                last_wp = float(t_wp)
+            self.n_periods += 1
+            if self.stats is not None:
+                self.stats[:] = [self.n_periods, self.n_physics_steps, self.n_dropped_steps]
+            self.clock.sleep_until(t_period + dt)  # as ur-rtde's waitPeriod: a late period is not made up
+
+
+def _sim_robot_main(cfg: SimURConfig, heartbeat: Any, commands: Any, state: SharedStateBuffer, stop_event: Any,
+                    errors: Any) -> None:
+    try:
+        SimServoLoop(cfg, commands, state, stop_event, heartbeat, stats=getattr(cfg, "_stats", None)).run()
+    except BaseException as exc:  # noqa: BLE001 - reported to the runner
+        errors.put(str(exc) if isinstance(exc, DeployError) else f"{type(exc).__name__}: {exc}")
+
+
+class SimUR5eRobot(URRTDERobot):
+    """:class:`~umi_aug.deploy.interfaces.RobotInterface` of the simulated UR5e: the ur-rtde backend's process
+    wrapper (state ring buffer, command queue, heartbeat thread, error reporting) around :class:`SimServoLoop`.
+
+    :meth:`sim_stats` reads the loop's counters (periods, physics steps, steps dropped when the machine could
+    not keep real time)."""
+
+    process_main = staticmethod(_sim_robot_main)
+
+    def __init__(self, cfg: SimURConfig, ctx: Any = None, capacity: int = 2048, connect_timeout_s: float = 30.0):
+        super().__init__(cfg, ctx, capacity, connect_timeout_s, what="simulated UR5e")
+        self._stats = self._ctx.Array("d", 3, lock=False)
+        cfg._stats = self._stats  # travels to the child with the config
+
+    def sim_stats(self) -> dict[str, int]:
+        p, n, drop = (int(v) for v in self._stats[:])
+        return {"periods": p, "physics_steps": n, "dropped_physics_steps": drop}
+
+
+# ---------------------------------------------------------------------------------------------- gripper
+@dataclass
+class SimGripperConfig:
+    """The ``gripper:`` block of ``configs/robot/sim_ur5e.yaml`` (metres, seconds)."""
+
+    obs_latency: float = 0.01
+    action_latency: float = 0.1
+    frequency: float = 30.0
+    max_speed: float = 0.2
+    max_width: float = 0.09  # the scene gripper's stroke
+    width_init: float = 0.08
+    home_to_open: bool = False
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any], where: str = "gripper") -> "SimGripperConfig":
+        reject_unknown_keys(m, cls.__dataclass_fields__, where)
+        c = cls(**dict(m))
+        _positive(where, c, ("frequency", "max_speed", "max_width", "action_latency"))
+        if not (c.frequency <= 100 and 0 <= c.width_init <= c.max_width):
+            raise DeployError(f"{where}: need frequency <= 100 Hz and 0 <= width_init <= max_width, got "
+                              f"{c.frequency}, {c.width_init}, {c.max_width}")
+        return c
+
+
+class SimFingerDriver:
+    """A parallel two-finger gripper answering the :class:`~umi_aug.deploy.wsg50.WSG50Driver` calls the control
+    loop makes (millimetres): the jaw width moves towards the commanded position at most ``max_speed``."""
+
+    def __init__(self, cfg: SimGripperConfig, clock: Any = time.monotonic) -> None:
+        self.max_mm, self.speed_mm = 1000.0 * cfg.max_width, 1000.0 * cfg.max_speed
+        self.pos = self.target = 1000.0 * cfg.width_init
+        self.vel = 0.0
+        self.clock = clock
+        self.t = clock()
+
+    def _advance(self) -> None:
+        t = self.clock()
+        step = float(np.clip(self.target - self.pos, -self.speed_mm * (t - self.t), self.speed_mm * (t - self.t)))
+        self.vel = step / (t - self.t) if t > self.t else 0.0
+        self.pos += step
+        self.t = t
+
+    def ack_fault(self) -> None:
+        pass
+
+    def homing(self, positive: bool = True) -> None:
+        """Open (``positive``) or close fully, blocking until there (as the WSG-50's homing)."""
+        self.target = self.max_mm if positive else 0.0
+        while abs(self.pos - self.target) > 1e-6:
+            time.sleep(0.005)
+            self._advance()
+
+    def measure(self) -> dict[str, float]:
+        self._advance()
+        return {"state": 0, "position": self.pos, "velocity": self.vel, "force": 0.0, "gripper_time": self.t}
+
+    def position_pd(self, position_mm: float, velocity_mm_s: float, *_: float, **__: float) -> dict[str, float]:
+        self._advance()
+        self.target = float(np.clip(position_mm, 0.0, self.max_mm))
+        return self.measure()
+
+
+def _sim_gripper_main(cfg: SimGripperConfig, commands: Any, state: SharedStateBuffer, stop_event: Any,
+                      errors: Any) -> None:
+    try:
+        run_gripper_loop(SimFingerDriver(cfg), cfg, commands, state, stop_event)
+    except BaseException as exc:  # noqa: BLE001 - reported to the runner
+        errors.put(f"{type(exc).__name__}: {exc}")
+
+
+class SimGripper(WSG50Gripper):
+    """:class:`~umi_aug.deploy.interfaces.GripperInterface` of the simulated gripper (the WSG-50 process wrapper
+    and loop, a simulated driver)."""
+
+    process_main = staticmethod(_sim_gripper_main)
+
+    def __init__(self, cfg: SimGripperConfig, ctx: Any = None, connect_timeout_s: float = 10.0) -> None:
+        super().__init__(cfg, ctx, connect_timeout_s, what="simulated gripper")
+
+
+# ----------------------------------------------------------------------------------------------- camera
+@dataclass
+class SimCameraConfig:
+    """The ``camera:`` block of ``configs/robot/sim_ur5e.yaml``.
+
+    Attributes:
+        fps: nominal frame rate the observation timing uses (UMI's GoPro, 60).
+        render_fps: frames actually rendered per second (CPU rendering; the runner picks the newest frame at or
+            before each observation time, as with a real camera).
+        latency: seconds between the state a frame shows and its delivery (subtracted again on receipt).
+        width, height: rendered fisheye frame (the GoPro 2.7K calibration scaled; the demo session's 320×240).
+        size: policy image side. mask_gripper: paint UMI's gripper mask black (as the training images).
+        scene_seed, n_distractors: the built-in tabletop scene. start_timeout_s: first frame within this.
+    """
+
+    fps: float = 60.0
+    render_fps: float = 20.0
+    latency: float = 0.1
+    width: int = 320
+    height: int = 240
+    size: int = 224
+    mask_gripper: bool = True
+    scene_seed: int = 0
+    n_distractors: int = 4
+    buffer: int = 64
+    start_timeout_s: float = 120.0
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any], where: str = "camera") -> "SimCameraConfig":
+        reject_unknown_keys(m, cls.__dataclass_fields__, where)
+        c = cls(**dict(m))
+        _positive(where, c, ("fps", "render_fps", "latency", "width", "height", "size", "buffer", "start_timeout_s"))
+        if c.width < c.height or c.height < c.size // 4:
+            raise DeployError(f"{where}: need width >= height (landscape GoPro frame), got {c.width}x{c.height}")
+        return c
+
+
+def _camera_main(cfg: SimCameraConfig, T_world_base: np.ndarray, robot_state: SharedStateBuffer,
+                 gripper_state: SharedStateBuffer, frames: Any, stop_event: Any, errors: Any) -> None:
+    try:
+        from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
+        from umi_aug.camera.umi_image import umi_policy_image
+        from umi_aug.geometry.umi import umi_T_cam_tcp
+        from umi_aug.sim.fisheye_renderer import FisheyeRenderer
+        from umi_aug.sim.raster import RasterOptions
+        from umi_aug.sim.scene import SCENE_FAR, SCENE_NEAR, build_tabletop_scene
+        from umi_aug.sim.tabletop_state import TabletopState
+
+        model = build_tabletop_scene(int(cfg.scene_seed), n_distractors=int(cfg.n_distractors)).compile()
+        scene = TabletopState(model)
+        intr = gopro_intrinsics_2_7k().scaled(int(cfg.width), int(cfg.height))
+        T_tcp_cam = np.linalg.inv(umi_T_cam_tcp())
+        period = 1.0 / cfg.render_fps
+        pending: collections.deque = collections.deque()
+        with FisheyeRenderer(model, intr, options=RasterOptions(near=SCENE_NEAR, far=SCENE_FAR)) as renderer:
+            t_next = time.monotonic()
+            while not stop_event.is_set():
+                now = time.monotonic()
+                if now >= t_next:
+                    tcp = robot_state.latest(1)["tcp_pose"][-1]
+                    width = float(gripper_state.latest(1)["width"][-1])
+                    T_world_cam = T_world_base @ pos_rotvec_to_pose(tcp) @ T_tcp_cam
+                    scene.set(T_world_cam, max(width, 0.0))
+                    rgb = renderer.render(T_world_cam, scene.data, depth=False).rgb
+                    pending.append((now, umi_policy_image(rgb, intr, int(cfg.size), bool(cfg.mask_gripper))))
+                    t_next += period
+                    if t_next < time.monotonic():  # rendering is slower than render_fps: no burst afterwards
+                        t_next = time.monotonic() + period
+                while pending and pending[0][0] + cfg.latency <= time.monotonic():
+                    frames.put(pending.popleft())
+                wake = min([t_next] + ([pending[0][0] + cfg.latency] if pending else []))
+                time.sleep(min(max(0.0, wake - time.monotonic()), 0.05))
+    except BaseException as exc:  # noqa: BLE001 - reported to the runner
+        errors.put(f"{type(exc).__name__}: {exc}")
+
+
+class SimFisheyeCamera:
+    """:class:`~umi_aug.deploy.interfaces.CameraInterface` of the simulated wrist camera (render process +
+    receiving thread, like :class:`~umi_aug.deploy.camera.UVCCamera`'s capture thread).
+
+    Args:
+        cfg: :class:`SimCameraConfig`. robot, gripper: the simulated backends (their state buffers drive the
+            rendered gripper pose and finger opening). T_world_base: [4, 4] robot base in the scene frame.
+    """
+
+    def __init__(self, cfg: SimCameraConfig, robot: Any, gripper: Any, T_world_base: np.ndarray,
+                 ctx: Any = None) -> None:
+        self.cfg = cfg
+        self.fps = float(cfg.fps)
+        self._robot_state, self._gripper_state = robot.state, gripper.state
+        self.T_world_base = np.asarray(T_world_base, float)
+        self._ctx = ctx or mp.get_context("spawn")
+        self._frames: collections.deque = collections.deque(maxlen=int(cfg.buffer))
+        self._lock = threading.Lock()
+        self._stop_thread = threading.Event()
+        self._proc: Any = None
+        self._thread: threading.Thread | None = None
+        self._error: str | None = None
+        self.delivery_delay: list[float] = []  # receive time − (capture time + latency), s
+        self.n_read = 0
+
+    def start(self) -> None:
+        from umi_aug.sim.gl import import_mujoco
+
+        import_mujoco()  # chooses MUJOCO_GL here, the render process inherits it
+        self._q, self._errors, self._stop = self._ctx.Queue(), self._ctx.Queue(), self._ctx.Event()
+        self._proc = self._ctx.Process(target=_camera_main, name="sim_camera", daemon=True,
+                                       args=(self.cfg, self.T_world_base, self._robot_state, self._gripper_state,
+                                             self._q, self._stop, self._errors))
+        self._proc.start()
+        self._thread = threading.Thread(target=self._receive, name="sim_camera_rx", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + self.cfg.start_timeout_s
+        while not self._frames:
+            err = self._poll_error()
+            if err or time.monotonic() > deadline:
+                self.stop()
+                raise DeployError(f"simulated camera: no frame within {self.cfg.start_timeout_s} s ({err or 'timeout'})")
+            time.sleep(0.01)
+
+    def _receive(self) -> None:
+        while not self._stop_thread.is_set():
+            try:
+                t_cap, img = self._q.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            except (EOFError, OSError):
+                return
+            t_recv = time.monotonic()
+            with self._lock:
+                self._frames.append((t_recv - self.cfg.latency, img))
+                self.delivery_delay.append(t_recv - self.cfg.latency - t_cap)
+                self.n_read += 1
+
+    def _poll_error(self) -> str | None:
+        if self._error is None and self._proc is not None:
+            try:
+                self._error = self._errors.get_nowait()
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    self._error = f"render process exited (code {self._proc.exitcode})"
+        return self._error
+
+    def get_frames(self, n: int) -> dict[str, np.ndarray]:
+        err = self._poll_error()
+        if err:
+            raise SafetyStop(f"simulated camera stopped: {err}")
+        with self._lock:
+            items = list(self._frames)[-int(n):]
+        if not items:
+            raise SafetyStop("simulated camera: no frame (not started)")
+        return {"timestamp": np.array([t for t, _ in items]), "rgb": np.stack([im for _, im in items])}
+
+    def sim_stats(self) -> dict[str, float]:
+        """Frames received, their mean rate, and the delivery delay beyond the configured latency (ms)."""
+        with self._lock:
+            d = np.asarray(self.delivery_delay, float)
+            ts = [t for t, _ in self._frames]
+        out: dict[str, float] = {"camera_frames": self.n_read}
+        if len(ts) > 1:
+            out["camera_fps_recent"] = (len(ts) - 1) / (ts[-1] - ts[0])
+        if len(d):
+            out["camera_extra_delay_p50_ms"] = float(np.percentile(d, 50) * 1000)
+            out["camera_extra_delay_p99_ms"] = float(np.percentile(d, 99) * 1000)
+        return out
+
+    def stop(self) -> None:
+        """Stop the render process and the receiving thread (idempotent)."""
+        if self._proc is not None:
+            self._stop.set()
+            self._proc.join(timeout=5.0)
+            if self._proc.is_alive():
+                log.error("simulated camera process did not stop in 5 s; terminating it")
+                self._proc.terminate()
+                self._proc.join(timeout=2.0)
+            self._proc = None
+        self._stop_thread.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
