@@ -4,7 +4,8 @@ UMI's published datasets hold only the policy frames (``camera0_rgb``, ``S x S``
 TCP poses in the table-tag frame, gripper widths and ``meta/episode_ends``: no scan, no raw video. Per scene group
 (one episode by default; ``scene_group = N`` consecutive episodes, or an explicit map) this module builds what
 :class:`~umi_aug.augment.session_assets.SessionAssets` needs, each step a cached stage under
-``<work>/scenes/<group>/`` (:mod:`umi_aug.augment.cache`), one group at a time (never all scenes in memory):
+``<work>/scenes/<group>/`` (:mod:`umi_aug.augment.cache`), one group at a time (never all scenes in memory;
+``prepare_dataset(lazy=True)``, as the export runs it: a group is built when its first episode is generated):
 
 1. ``scene`` — camera poses ``T_world_cam = T_world_tcp @ inv(T_cam_tcp)`` (UMI's fixed offset, ``tcp_offset``
    configurable, :func:`umi_aug.geometry.umi_T_cam_tcp`); the episodes' frames before the gripper first closes
@@ -30,6 +31,7 @@ import json
 import logging
 import os
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -298,10 +300,13 @@ def background_shell_points(T_world_cam: np.ndarray, n: int, radius: float, rng:
 @dataclass
 class DatasetAssets(SessionAssets):
     """:class:`SessionAssets` of a plain dataset: one scene per group; :meth:`for_demo` gives the handle of the
-    demo's group (its SDF, Gaussians, render views, overlay mask) that the per-episode functions use.
+    demo's group (its SDF, Gaussians, render views, overlay mask) that the per-episode functions use, building the
+    group's stages first if this handle has not (:meth:`build_group`: cached on disk, so another process or a
+    later run only reads them).
 
-    Attributes (besides the base ones): group_of: {episode: group name}; group_paths: {group: paths};
-    group_views: {group: [V, 4, 4] render views}; group_masks: {group: [S, S] bool}; T_cam_tcp: [4, 4].
+    Attributes (besides the base ones): group_of: {episode: group name}; groups: {group: [episode, ...]};
+    group_paths: {group: paths}; group_views: {group: [V, 4, 4] render views}; group_masks: {group: [S, S]
+    bool} (the groups built so far); T_cam_tcp: [4, 4]; build: what :meth:`build_group` needs.
     """
 
     group_of: dict[int, str] = field(default_factory=dict)
@@ -309,11 +314,42 @@ class DatasetAssets(SessionAssets):
     group_views: dict[str, np.ndarray] = field(default_factory=dict)
     group_masks: dict[str, np.ndarray] = field(default_factory=dict)
     T_cam_tcp: np.ndarray = field(default_factory=lambda: np.eye(4))
+    groups: dict[str, list[int]] = field(default_factory=dict)
+    build: dict[str, Any] = field(default_factory=dict)
+
+    def build_group(self, g: str) -> None:
+        """Build (or load from the stage cache) group ``g``'s scene and record its paths, views, mask and the
+        splice frames of its episodes."""
+        if g in self.group_paths:
+            return
+        if g not in self.groups:
+            raise AugmentError(f"{self.session_dir}: no scene group {g!r} (groups: {sorted(self.groups)[:8]})")
+        b = self.build
+        gd = {e: _Demo(self.demos[e].name, self.demos[e].T_world_cam, self.demos[e].gripper_width)
+              for e in self.groups[g]}
+        fps = {e: 1.0 / float(np.median(np.diff(self.demos[e].timestamps))) if len(gd[e].gripper_width) > 1
+               else 59.94 for e in gd}
+        res = _build_group(self.session_dir, self.work_dir, b["fp"], g, gd, fps, self.cfg, b["inp"], b["renders"],
+                           b["progress"], b["extra"])
+        for e, c in res["contact"].items():
+            self.demos[e].contact_index = None if c is None else int(c)
+        self.group_views[g], self.group_masks[g] = res["views"], res["mask"]
+        self.stages.update(res["stages"])
+        if not self.mask_info:
+            self.mask_info = res["mask_info"]
+        self.group_paths[g] = res["paths"]
+
+    @property
+    def augmentable(self) -> list[int]:
+        """Selected episodes with a splice frame, and those of groups not built yet (not known)."""
+        return [e for e in sorted(self.group_of)
+                if self.group_of[e] not in self.group_paths or self.demos[e].contact_index is not None]
 
     def for_demo(self, demo_index: int) -> SessionAssets:
         g = self.group_of.get(int(demo_index))
         if g is None:
             raise AugmentError(f"{self.session_dir}: episode {demo_index} was not selected for augmentation")
+        self.build_group(g)
         sa = SessionAssets(self.session_dir, self.work_dir, self.cfg, self.intrinsics, self.demos,
                            self.group_views[g], self.group_masks[g], self.mask_info, dict(self.group_paths[g]),
                            self.stages)
@@ -551,9 +587,59 @@ def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, _Demo], sc
     return run_stage("splat", work, conf, {"dataset": fp, "scene": scene.key, "contact": contact.key}, fn)
 
 
+@contextmanager
+def _build_lock(folder: Path):
+    """Exclusive, BLOCKING lock of one group's stage folder: executor workers that need the same group while it
+    is being built wait for it, then find its stages cached (the kernel drops the lock if the holder dies)."""
+    import fcntl
+
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder / ".build.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
+
+
+def _build_group(dataset: Path, work: Path, fp: str, g: str, gd: dict[int, _Demo], fps: dict[int, float],
+                 cfg: AugmentConfig, inp: DatasetInput, renders: bool, progress: bool, extra_paths: dict[str, str]
+                 ) -> dict[str, Any]:
+    """Build (or find cached under ``<work>/scenes/<g>/``) one group's stages: ``{paths, views, mask, mask_info,
+    contact: {episode: splice frame or None}, stages}``."""
+    gw = work / "scenes" / g
+    eps = sorted(gd)
+    with _build_lock(gw):
+        try:
+            scene = _stage_scene(gw, dataset, fp, eps, gd, fps, cfg, inp)
+            sdf_st = _stage_sdf(gw, dataset, scene, eps, gd, fps, cfg)
+            contact = _stage_contact(gw, sdf_st, _Sess([gd[e] for e in eps]), dict(cfg.recon.contact_overrides),
+                                     cfg.pregrasp_clearance_m)
+            rows = json.loads(contact.path("contacts").read_text())
+            contact_idx = {e: r["splice_index"] for e, r in zip(eps, rows)}
+            paths = {"sdf": str(sdf_st.path("sdf")), "cloud": str(scene.path("cloud")), "dataset": str(dataset)}
+            stages = {f"{g}/scene": scene, f"{g}/sdf": sdf_st, f"{g}/contact": contact}
+            mask, mask_info = np.zeros((cfg.image_size, cfg.image_size), bool), {}
+            if renders:
+                splat = _stage_splat(gw, dataset, fp, gd, scene, contact, cfg, inp, progress)
+                infos = [DemoInfo(e, gd[e].name, gd[e].T_world_cam, np.zeros(0), gd[e].gripper_width,
+                                  contact_idx[e]) for e in eps]
+                gm = _stage_gripper_mask(gw, cfg, fp, dataset, infos, contact)
+                paths["splat"] = str(splat.path("ply"))
+                mask, mask_info = np.load(gm.path("mask")), gm.info
+                stages[f"{g}/splat"], stages[f"{g}/gripper_mask"] = splat, gm
+        except UmiAugError as exc:
+            raise AugmentError(f"scene group {g} (episodes {eps}): stage failed: {exc}") from exc
+    paths.update(extra_paths)
+    views = [gd[e].T_world_cam[: contact_idx[e] + 1] for e in eps if contact_idx[e] is not None]
+    return {"paths": paths, "views": np.concatenate(views) if views else np.zeros((0, 4, 4)), "mask": mask,
+            "mask_info": mask_info, "contact": contact_idx, "stages": stages}
+
+
 def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg: AugmentConfig,
-                    inp: DatasetInput = DatasetInput(), *, renders: bool = True, progress: bool = True
-                    ) -> DatasetAssets:
+                    inp: DatasetInput = DatasetInput(), *, renders: bool = True, progress: bool = True,
+                    lazy: bool = False) -> DatasetAssets:
     """Check the dataset, then build (or reuse from ``work_dir``) each selected group's scene, one at a time.
 
     Args:
@@ -562,11 +648,16 @@ def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg
         cfg: :class:`AugmentConfig` (``image_size`` must be the dataset's).
         inp: :class:`DatasetInput`.
         renders: False → plan only (no 3DGS / mask / obstacle Gaussians).
+        lazy: build nothing here: a group's scene is built (or loaded from its cache) the first time one of its
+            episodes is generated (:meth:`DatasetAssets.for_demo`, in whichever process runs the episode), so
+            a run over ~1400 episodes starts at once and never holds more than a couple of scenes. Until then
+            the group's episodes count as augmentable (their contact frames are not known yet).
     Raises:
         AugmentError: a bad dataset (before any compute) or a failed stage (named with its group).
     """
     from tqdm import tqdm
 
+    from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
     from umi_aug.geometry.umi import camera_poses_from_tcp_poses
 
     dataset, work = Path(dataset), Path(work_dir)
@@ -575,76 +666,38 @@ def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg
     selected = sorted(chk.T_world_tcp)
     groups = scene_groups(chk.n_episodes, selected, inp)
     T_cam_tcp = inp.T_cam_tcp
-    demos_all: dict[int, _Demo] = {}
-    fps: dict[int, float] = {}
-    for e in selected:
-        demos_all[e] = _Demo(f"episode_{e:06d}", camera_poses_from_tcp_poses(chk.T_world_tcp[e], T_cam_tcp),
-                             chk.gripper_width[e])
-        fps[e] = 59.94  # UMI keeps every frame of the GoPro's 59.94 fps video
+    fps = 59.94  # UMI keeps every frame of the GoPro's 59.94 fps video
     work.mkdir(parents=True, exist_ok=True)
-    contact_idx: dict[int, int | None] = {}
-    group_paths, group_views, group_masks, group_of = {}, {}, {}, {}
     stages: dict[str, StageResult] = {}
-    obs = None
+    extra: dict[str, str] = {}
     if renders and "obstacle" in cfg.modes:
         try:
             obs = stages["obstacles"] = _stage_obstacles(work, cfg)
         except UmiAugError as exc:
             raise AugmentError(f"stage obstacles failed: {exc}") from exc
-    mask_info: dict = {}
-    for g, eps in tqdm(list(groups.items()), desc="scenes", unit="group", disable=not progress or len(groups) < 2):
-        gw = work / "scenes" / g
-        gd = {e: demos_all[e] for e in eps}
-        try:
-            scene = _stage_scene(gw, dataset, fp, eps, gd, fps, cfg, inp)
-            sdf_st = _stage_sdf(gw, dataset, scene, eps, gd, fps, cfg)
-            contact = _stage_contact(gw, sdf_st, _Sess([gd[e] for e in eps]), dict(cfg.recon.contact_overrides),
-                                     cfg.pregrasp_clearance_m)
-            rows = json.loads(contact.path("contacts").read_text())
-            for e, r in zip(eps, rows):
-                contact_idx[e] = r["splice_index"]
-            paths = {"sdf": str(sdf_st.path("sdf")), "cloud": str(scene.path("cloud")), "dataset": str(dataset)}
-            mask = np.zeros((cfg.image_size, cfg.image_size), bool)
-            if renders:
-                splat = _stage_splat(gw, dataset, fp, gd, scene, contact, cfg, inp, progress)
-                infos = [DemoInfo(e, gd[e].name, gd[e].T_world_cam, np.zeros(0), gd[e].gripper_width,
-                                  contact_idx[e]) for e in eps]
-                gm = _stage_gripper_mask(gw, cfg, fp, dataset, infos, contact)
-                paths["splat"] = str(splat.path("ply"))
-                mask, mask_info = np.load(gm.path("mask")), gm.info
-                stages[f"{g}/splat"] = splat
-                stages[f"{g}/gripper_mask"] = gm
-            stages[f"{g}/scene"], stages[f"{g}/sdf"], stages[f"{g}/contact"] = scene, sdf_st, contact
-        except UmiAugError as exc:
-            raise AugmentError(f"scene group {g} (episodes {eps}): stage failed: {exc}") from exc
-        if obs is not None:
-            for name in cfg.obstacle.assets:
-                paths[f"obstacle/{name}"] = str(obs.path(name))
-        views = [gd[e].T_world_cam[: contact_idx[e] + 1] for e in eps if contact_idx[e] is not None]
-        group_paths[g] = paths
-        group_views[g] = np.concatenate(views) if views else np.zeros((0, 4, 4))
-        group_masks[g] = mask
-        for e in eps:
-            group_of[e] = g
-    from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
-
+        extra = {f"obstacle/{name}": str(obs.path(name)) for name in cfg.obstacle.assets}
     demos = []
     ends = chk.episode_ends
     for e in range(chk.n_episodes):
-        if e in demos_all:
-            d = demos_all[e]
-            Tc, w = d.T_world_cam, d.gripper_width
+        if e in chk.T_world_tcp:
+            Tc, w = camera_poses_from_tcp_poses(chk.T_world_tcp[e], T_cam_tcp), chk.gripper_width[e]
         else:  # not selected: copied as is, never augmented (poses not needed)
             n = int(ends[e] - (ends[e - 1] if e else 0))
             Tc, w = np.tile(np.eye(4), (n, 1, 1)), np.zeros(n)
-        demos.append(DemoInfo(e, f"episode_{e:06d}", Tc, np.arange(len(w)) / fps.get(e, 59.94), w,
-                              contact_idx.get(e)))
-    first = group_of[selected[0]] if selected else None
-    return DatasetAssets(dataset, work, cfg, gopro_intrinsics_2_7k(), demos,
-                         group_views.get(first, np.zeros((0, 4, 4))), group_masks.get(first, np.zeros((1, 1), bool)),
-                         mask_info, {"dataset": str(dataset), **(group_paths.get(first, {}))}, stages,
-                         group_of=group_of, group_paths=group_paths, group_views=group_views, group_masks=group_masks,
-                         T_cam_tcp=T_cam_tcp)
+        demos.append(DemoInfo(e, f"episode_{e:06d}", Tc, np.arange(len(w)) / fps, w, None))
+    group_of = {e: g for g, eps in groups.items() for e in eps}
+    assets = DatasetAssets(dataset, work, cfg, gopro_intrinsics_2_7k(), demos, np.zeros((0, 4, 4)),
+                           np.zeros((cfg.image_size, cfg.image_size), bool), {}, {"dataset": str(dataset), **extra},
+                           stages, group_of=group_of, T_cam_tcp=T_cam_tcp, groups=groups,
+                           build={"fp": fp, "inp": inp, "renders": renders, "progress": progress, "extra": extra})
+    if not lazy:
+        for g in tqdm(list(groups), desc="scenes", unit="group", disable=not progress or len(groups) < 2):
+            assets.build_group(g)
+        first = group_of[selected[0]] if selected else None
+        if first is not None:  # the base handle shows the first group's scene (as a session's handle its one)
+            assets.render_views, assets.gripper_mask = assets.group_views[first], assets.group_masks[first]
+            assets.paths = {"dataset": str(dataset), **assets.group_paths[first]}
+    return assets
 
 
 @dataclass

@@ -194,8 +194,12 @@ def _job_task(args) -> _JobResult:
     cached plan), then render the new frames — and the replayed ones too when they cannot be copied raw."""
     assets, j, job, key, raw_ok = args
     d, m, a = job
-    assets = assets.for_demo(d)  # a plain dataset: the demo's scene group
     t0 = time.perf_counter()
+    assets = assets.for_demo(d)  # a plain dataset: the demo's scene group (built here on first use)
+    if assets.demos[d].contact_index is None:  # known only once a lazily built group has run its contact stage
+        return _JobResult(j, None, 0, [f"scene: {assets.demos[d].name} has no splice frame (no contact frame, or "
+                                       f"none with the pre-grasp clearance); not augmented"], None, False,
+                          time.perf_counter() - t0, 0.0)
     cache = _plan_cache_path(assets, job, key)
     planned = _load_planned(cache) if cache.exists() else None
     if planned is None:
@@ -427,7 +431,8 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
                          f"episodes{' + a .zarr.zip copy of the working store' if out.name.endswith('.zip') else ''})",
                          AugmentError)
     if is_dataset:
-        assets = dsrc.prepare_dataset(session_dir, work, cfg, dataset_input, progress=progress)
+        # scenes built per group when its first episode is generated (cached on disk), never all up front
+        assets = dsrc.prepare_dataset(session_dir, work, cfg, dataset_input, progress=progress, lazy=True)
     else:
         assets = prepare_session(session_dir, work, cfg, progress=progress)
     jobs = export_jobs(assets)
@@ -470,6 +475,8 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
                                      "reasons": res.reasons[-3:]})
                 else:
                     frames_rendered += planned.splice_index
+                    if cfg.include_original and int(buf.meta["aug_splice_index"][d]) < 0:  # group built lazily
+                        buf.meta["aug_splice_index"][d] = int(planned.episode.source_contact_index)
                     t0 = time.perf_counter()
                     _add_records(buf, {"aug_source_episode": d, "aug_mode": MODE_CODES[m], "aug_id": a,
                                        "aug_seed": planned.seed, "aug_attempts": planned.attempts,
