@@ -155,3 +155,38 @@ def test_augment_preflight_accepts_segments_and_reports_mismatch(tmp_path):
     root, *_ = _build(tmp_path / "t", pos_shift={0: 0.01})
     with pytest.raises(AugmentError, match=r"episode 0 \(15 steps\) matches no tracked segment"):
         check_session_inputs(root)
+
+
+def test_tags_inpainted_as_umi_does(tmp_path):
+    """UMI's tag_detection.pkl next to a video: decoded frames (any size, cropped demos included) get the detected
+    tags covered with the median border colour of the 1.4x grown quad; frames without a detection are as stored."""
+    from umi_aug.data.video import VideoWriter, inpaint_tag
+    from umi_aug.recon.session_io import load_session
+
+    root, *_ = _build(tmp_path / "s")
+    n = DEMOS["demo_b"][0]
+    quad = np.array([[26, 18], [38, 18], [38, 30], [26, 30]], np.float64)  # a 12 px dark "tag" at the centre
+    with VideoWriter(root / "demos" / "demo_b" / "raw_video.mp4", W, H, FPS) as vw:
+        for _ in range(n):
+            img = np.full((H, W, 3), 150, np.uint8)
+            img[18:30, 26:38] = 10
+            vw.write(img)
+    detections = [{"frame_idx": i, "time": i / FPS, "tag_dict": {} if i == 3 else {13: {"corners": quad[None]}}}
+                  for i in range(n)]
+    (root / "demos" / "demo_b" / "tag_detection.pkl").write_bytes(pickle.dumps(detections))
+    d = load_session(root).demos[2]  # demo_b from video frame 2
+    assert d.frame_offset == 2 and d.tag_corners is not None
+    full = d.read_frames([0, 1])  # video frames 2 (tag detected) and 3 (none)
+    assert abs(float(full[0, 18:30, 26:38].mean()) - 150) < 4  # covered with the surrounding grey
+    assert float(full[1, 20:28, 28:36].mean()) < 40  # no detection: as stored
+    small = d.read_frames([0, 1], size=(32, 24))  # centre crop 64 → 64x48 ... scaled: the tag moves with it
+    assert abs(float(small[0, 9:15, 13:19].mean()) - 150) < 6 and float(small[1, 10:14, 14:18].mean()) < 50
+    # the fill rule: median of the grown quad's border samples, quad grown 1.4x about its centre
+    img = np.full((40, 40, 3), 200, np.uint8)
+    img[15:26, 15:26] = 0  # the tag
+    img[13, 13:19] = 90  # a few of the border's 16 samples darker: the median ignores them
+    out = inpaint_tag(img.copy(), np.array([[15, 15], [25, 15], [25, 25], [15, 25]]))
+    assert (out[13:28, 13:28] == 200).all()  # the 1.4x grown quad (side 14 px about the centre) filled
+    keep = np.ones((40, 40), bool)
+    keep[12:29, 12:29] = False
+    assert (out[keep] == img[keep]).all()  # nothing outside it changed

@@ -27,7 +27,8 @@ import numpy as np
 from umi_aug.errors import DatasetError
 
 __all__ = ["VideoInfo", "probe_video", "iter_video_frames", "read_video_frames", "read_video_frames_reference",
-           "select_expression", "VideoWriter", "centre_crop", "DEFAULT_CRF"]
+           "select_expression", "VideoWriter", "centre_crop", "DEFAULT_CRF", "inpaint_tag", "read_tag_detections",
+           "TAG_SCALE"]
 
 #: libx264 constant rate factor of :class:`VideoWriter` (lower = better). 8 keeps the synthetic session's frames
 #: at least as close to the renders as the JPEG-95 frames it used to write: PSNR against 40 rendered 320x240 scan
@@ -283,3 +284,57 @@ class VideoWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+# ------------------------------------------------------------------------------------------------ ArUco tags
+#: UMI's ``inpaint_tag``: the tag quad is grown this many times about its centre before filling.
+TAG_SCALE = 1.4
+#: Points sampled along the grown quad's border for the fill colour.
+TAG_BORDER_SAMPLES = 16
+
+
+def inpaint_tag(img: np.ndarray,  # [H, W, 3] uint8, modified in place
+                corners: np.ndarray,  # [4, 2] tag corners, pixels (x, y) of img
+                scale: float = TAG_SCALE, n_samples: int = TAG_BORDER_SAMPLES) -> np.ndarray:
+    """Cover one ArUco tag the way UMI's 07_generate_replay_buffer does (``inpaint_tag``): grow the quad ``scale``
+    times about its centre, take the median colour of ``n_samples`` points along the grown quad's border
+    (clipped to the image) and fill the grown quad with it. Returns ``img``."""
+    import cv2
+
+    c = np.asarray(corners, np.float64).reshape(4, 2)
+    grown = scale * (c - c.mean(axis=0)) + c.mean(axis=0)
+    closed = np.concatenate([grown, grown[:1]])
+    t = np.linspace(0.0, 4.0, int(n_samples))
+    seg = np.minimum(t.astype(int), 3)
+    pts = closed[seg] + (t - seg)[:, None] * (closed[seg + 1] - closed[seg])
+    pts = pts.astype(np.int32)
+    h, w = img.shape[:2]
+    colour = np.median(img[np.clip(pts[:, 1], 0, h - 1), np.clip(pts[:, 0], 0, w - 1)], axis=0).astype(img.dtype)
+    cv2.fillPoly(img, [grown.astype(np.int32)], color=[int(v) for v in colour])
+    return img
+
+
+def read_tag_detections(path: str | os.PathLike) -> dict[int, list[np.ndarray]]:
+    """UMI's ``tag_detection.pkl`` (04_detect_aruco: one entry per video frame, ``{frame_idx, time,
+    tag_dict: {id: {rvec, tvec, corners}}}``) → ``{frame_idx: [corners [4, 2] (x, y) pixels of the video, ...]}``
+    (frames without a tag left out).
+
+    Raises:
+        DatasetError: unreadable file or entries without ``frame_idx`` / ``tag_dict`` / ``corners``.
+    """
+    import pickle
+
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            rows = pickle.load(f)  # the session's own pipeline output (UMI writes it with pickle)
+        out: dict[int, list[np.ndarray]] = {}
+        for i, r in enumerate(rows):
+            tags = [np.asarray(t["corners"], np.float64).reshape(4, 2) for t in dict(r["tag_dict"]).values()]
+            if tags:
+                out[int(r.get("frame_idx", i))] = tags
+    except Exception as exc:  # noqa: BLE001 - any unpickling/shape failure is the same bad-input error
+        raise DatasetError(f"{p}: unreadable tag detections ({type(exc).__name__}: {exc}); expected UMI's "
+                           f"04_detect_aruco output (a list of {{frame_idx, time, tag_dict: {{id: {{corners}}}}}})"
+                           ) from exc
+    return out

@@ -9,9 +9,11 @@ sequential pass (:mod:`umi_aug.data.video`). Old sessions with ``images/NNNNNN.j
 read (frames from the files).
 
 CSV rows are aligned with the video by ``frame_idx`` (one row per frame, as ORB-SLAM3 writes them); tracking-lost
-rows (``is_lost=true``) are kept as ``valid = False`` (pose = identity) and every stage skips them. ArUco tags are
-left in the frames, as UMI's SLAM sees them (its mask covers only the mirrors and fingers); UMI removes tags only
-when it makes the 224² dataset images (``inpaint_tag`` in 07_generate_replay_buffer).
+rows (``is_lost=true``) are kept as ``valid = False`` (pose = identity) and every stage skips them. ArUco tags: where
+a sequence folder holds UMI's ``tag_detection.pkl`` (04_detect_aruco), every decoded frame gets its detected tags
+inpainted the way UMI's 07_generate_replay_buffer does for the dataset images (quad grown 1.4x, filled with the
+median colour of its border), so the scene the 3DGS learns looks like the dataset frames it is spliced into;
+without it, frames are used as stored.
 
 Demos are returned in the order of the dataset's episodes, one per episode. UMI's episodes are the tracked
 segments of each demo video (lost frames dropped; a video may hold several, or none): each demo is cropped to its
@@ -48,6 +50,8 @@ log = logging.getLogger(__name__)
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
 #: UMI's per-sequence video file (00_process_videos).
 VIDEO_NAME = "raw_video.mp4"
+#: UMI's per-video ArUco detections (04_detect_aruco); when present, the tags are inpainted in decoded frames.
+TAG_DETECTIONS_NAME = "tag_detection.pkl"
 #: Relative tolerance of ``timestamp`` against ``frame_idx / fps`` (a CSV of another video fails it).
 TIMESTAMP_RTOL = 0.02
 
@@ -69,6 +73,9 @@ class ImageSequence:
         fps: the video's frame rate (NaN for image folders).
         frame_offset: video frame of this sequence's frame 0 (a demo cropped to its dataset episode, a valid SLAM
             segment of the video: :meth:`cropped`); frame indices of every method are relative to it.
+        tag_corners: ArUco tags per video frame (``{video frame: [[4, 2] corners, pixels of the stored frames]}``,
+            from UMI's ``tag_detection.pkl``), inpainted in every decoded frame as UMI's dataset images are
+            (:func:`umi_aug.data.video.inpaint_tag`); None: frames as stored.
     """
 
     name: str
@@ -82,6 +89,7 @@ class ImageSequence:
     image_paths: list[Path] | None = None
     fps: float = float("nan")
     frame_offset: int = 0
+    tag_corners: dict[int, list[np.ndarray]] | None = field(default=None, repr=False)
     _info: object | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
@@ -117,7 +125,7 @@ class ImageSequence:
         if self.image_paths is None:
             try:
                 for k, img in iter_video_frames(self.source, idx + self.frame_offset, size, info=self._info):
-                    yield k - self.frame_offset, img
+                    yield k - self.frame_offset, self._inpaint_tags(img, k)
             except UmiAugError as exc:
                 raise ReconError(f"{exc}; re-copy the video or re-create the session") from exc
             return
@@ -134,7 +142,23 @@ class ImageSequence:
                 x0, y0, cw, ch = centre_crop(*self.frame_size, *size)
                 img = cv2.resize(img[y0:y0 + ch, x0:x0 + cw], tuple(int(s) for s in size),
                                  interpolation=cv2.INTER_AREA)
-            yield k, img
+            yield k, self._inpaint_tags(img, k + self.frame_offset)
+
+    def _inpaint_tags(self, img: np.ndarray, video_frame: int) -> np.ndarray:
+        """``img`` (a decoded frame, possibly centre-cropped and resized) with the tags of ``video_frame`` covered
+        (UMI's ``inpaint_tag``, corners mapped from the stored frame's pixels)."""
+        tags = None if self.tag_corners is None else self.tag_corners.get(int(video_frame))
+        if not tags:
+            return img
+        from umi_aug.data.video import centre_crop, inpaint_tag
+
+        h, w = img.shape[:2]
+        W, H = self.frame_size
+        x0, y0, cw, ch = (0, 0, W, H) if (w, h) == (W, H) else centre_crop(W, H, w, h)
+        img = np.array(img, copy=not img.flags.writeable, order="C")
+        for c in tags:
+            inpaint_tag(img, (np.asarray(c, np.float64) - (x0, y0)) * (w / cw, h / ch))
+        return img
 
     def cropped(self, start: int, stop: int, name: str | None = None) -> "ImageSequence":
         """Frames ``[start, stop)`` of this sequence as a sequence of their own (poses, validity, timestamps
@@ -142,12 +166,14 @@ class ImageSequence:
         start, stop = int(start), int(stop)
         if not 0 <= start < stop <= self.n_frames:
             raise ReconError(f"{self.source}: crop [{start}, {stop}) outside the {self.n_frames} frames")
+        # image folders: the crop's image_paths start at frame ``start``; frame_offset still names the original
+        # frame (tag detections are keyed by it)
         return dataclasses.replace(
             self, name=self.name if name is None else name, n_frames=stop - start,
             T_world_cam=None if self.T_world_cam is None else self.T_world_cam[start:stop].copy(),
             valid=self.valid[start:stop].copy(), timestamp=self.timestamp[start:stop].copy(), gripper_width=None,
             image_paths=None if self.image_paths is None else self.image_paths[start:stop],
-            frame_offset=self.frame_offset + start if self.image_paths is None else 0)
+            frame_offset=self.frame_offset + start)
 
     def read_frames(self, indices: Sequence[int] | np.ndarray, size: tuple[int, int] | None = None,
                     progress: bool = False) -> np.ndarray:
@@ -237,6 +263,15 @@ def _sequence(folder: Path, name: str, csv: Path, T_tag_slam: np.ndarray) -> Ima
         raise ReconError(f"{folder}: no {VIDEO_NAME} (UMI session layout: demos/<demo>/{VIDEO_NAME} + "
                          f"camera_trajectory.csv); re-create a synthetic session with `umi-aug make-session`")
     _trajectory(seq, csv, T_tag_slam)
+    tags = folder / TAG_DETECTIONS_NAME
+    if tags.is_file():
+        from umi_aug.data.video import read_tag_detections
+
+        try:
+            seq.tag_corners = read_tag_detections(tags)
+        except UmiAugError as exc:
+            raise ReconError(str(exc)) from exc
+        log.info("%s: ArUco tags of %d frames are inpainted when decoded", tags, len(seq.tag_corners))
     return seq
 
 
