@@ -113,14 +113,6 @@ def test_cli_bad_checkpoint_is_one_clear_error(tmp_path):
                                              "checkpoint=PATH (or policy=reach)"]
 
 
-@pytest.fixture(scope="module")
-def tiny_ckpt(tmp_path_factory):
-    """A random-weight tiny policy (as tests/eval's fixture) with a normaliser fitted on a synthetic dataset."""
-    from tests.policy.helpers import make_tiny_checkpoint
-
-    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"), length=60, obs_down_sample_steps=3)
-
-
 @pytest.mark.slow
 def test_checkpoint_policy_closes_the_loop(tmp_path, video, tiny_ckpt):
     srv = FakeWSG()

@@ -124,6 +124,51 @@ def test_unreachable_target_is_a_protective_stop():
     assert s["timestamp"][-1] < 3.0  # stopped before the end
 
 
+def test_watchdog_stops_the_sim_arm_when_the_runner_is_silent():
+    from umi_aug.deploy.sim_ur5e import SimServoLoop, SimURConfig
+
+    cfg = SimURConfig.from_mapping(sim_robot_config()["robot"])
+    clock = FakeClock(0.0)
+
+    class Beat:  # the runner beat once at t = 0.2, then went silent
+        value = 0.2
+
+    loop = SimServoLoop(cfg, queue.Queue(), SharedStateBuffer(STATE_FIELDS, 4000), _StopAt(clock, 5.0), Beat(), clock)
+    with pytest.raises(SafetyStop, match=r"watchdog: no heartbeat from the runner for 1\.0\d s"):
+        loop.run()
+    assert clock.now() == pytest.approx(0.2 + cfg.watchdog_s, abs=0.01)
+
+
+def test_dead_sim_controller_process_is_a_safety_stop():
+    from umi_aug.deploy.sim_ur5e import SimUR5eRobot, SimURConfig
+
+    robot = SimUR5eRobot(SimURConfig.from_mapping(sim_robot_config()["robot"]))
+    robot.start()
+    try:
+        s = robot.get_states(5)
+        assert np.allclose(s["tcp_pose"][-1][:3], [0.0, -0.45, 0.30], atol=2e-3)
+        robot.check_ok()
+        robot._proc.kill()  # the controller dies (lost connection to the arm)
+        robot._proc.join(5)
+        with pytest.raises(SafetyStop, match=r"simulated UR5e process exited"):
+            robot.check_ok()
+    finally:
+        robot.stop()
+
+
+def test_cli_composes_the_sim_robot_config(tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, str(ROOT / "eval" / "deploy_ur.py"), "robot=sim_ur5e", "policy=reach",
+                        f"hydra.run.dir={tmp_path / 'h'}", "--cfg", "job"], capture_output=True, text=True,
+                       timeout=120, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    job = yaml.safe_load(r.stdout)
+    assert job["robot"]["backend"] == "sim" and job["policy"]["kind"] == "reach"
+    assert job["robot"] == sim_robot_config()
+
+
 def test_sim_config_errors_name_the_key():
     from umi_aug.deploy.sim_ur5e import SimCameraConfig, SimURConfig
 
@@ -190,13 +235,6 @@ def test_sim_reach_closes_the_loop_and_records(tmp_path):
     assert t["control_period"]["n"] > 500 and 1.9 < t["control_period"]["p50_ms"] < 4.0
     assert t["obs_to_action_latency"]["p50_ms"] >= 100.0  # at least the camera latency
     assert t["sim"]["periods"] > 500 and t["sim"]["camera_frames"] >= s["cycles"]
-
-
-@pytest.fixture(scope="module")
-def tiny_ckpt(tmp_path_factory):
-    from tests.policy.helpers import make_tiny_checkpoint
-
-    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"), length=60, obs_down_sample_steps=3)
 
 
 @pytest.mark.slow
