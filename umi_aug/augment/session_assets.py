@@ -385,7 +385,9 @@ def _stage_gripper_mask(work: Path, cfg: AugmentConfig, fp: str, dataset: Path, 
                 end = len(d.gripper_width) if end is None else int(end)
                 sl = buf.get_episode_slice(d.index)
                 idx = np.linspace(0, max(0, end - 1), min(end, 48)).round().astype(int)
-                frames.append(buf["camera0_rgb"][sl][idx])
+                # only these frames are decoded (one chunk per frame), not the whole episode
+                uniq, inv = np.unique(idx, return_inverse=True)
+                frames.append(buf["camera0_rgb"].get_orthogonal_selection((uniq + sl.start,))[inv])
         mask, info = choose_overlay_mask(np.concatenate(frames), S, cfg.overlay.mask, cfg.overlay.std_threshold,
                                          cfg.overlay.min_coverage)
         np.save(out / "mask.npy", mask)
