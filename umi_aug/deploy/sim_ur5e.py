@@ -402,6 +402,12 @@ class SimUR5eRobot(URRTDERobot):
         self._stats = self._ctx.Array("d", 3, lock=False)
         cfg._stats = self._stats  # travels to the child with the config
 
+    def start(self) -> None:
+        from umi_aug.sim.gl import import_mujoco
+
+        import_mujoco()  # chooses MUJOCO_GL once here; the controller process inherits it (no probe there)
+        super().start()
+
     def sim_stats(self) -> dict[str, int]:
         p, n, drop = (int(v) for v in self._stats[:])
         return {"periods": p, "physics_steps": n, "dropped_physics_steps": drop}
@@ -519,7 +525,7 @@ class SimCameraConfig:
         reject_unknown_keys(m, cls.__dataclass_fields__, where)
         c = cls(**dict(m))
         _positive(where, c, ("fps", "render_fps", "latency", "width", "height", "size", "buffer", "start_timeout_s"))
-        if c.width < c.height or c.height < c.size // 4:
+        if c.width < c.height:
             raise DeployError(f"{where}: need width >= height (landscape GoPro frame), got {c.width}x{c.height}")
         return c
 
