@@ -142,7 +142,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``umi-aug`` command. Exit code 0 on success, 2 on bad input (one clear message)."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    # umi-aug's own INFO lines; other libraries' only from WARNING up (PyOpenGL's shutdown notes…) unless -v
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not args.verbose:
+        logging.getLogger("umi_aug").setLevel(logging.INFO)
     configure_threads()
     try:
         return int(args.func(args))
