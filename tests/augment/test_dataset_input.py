@@ -181,6 +181,10 @@ def test_real_demonstration_end_to_end(tmp_path):
     inp = DatasetInput(sfm_stride=8, view_stride=4, background_points=300)
     s = export(REAL, out, cfg, dataset_input=inp, progress=False)
     assert s.stages["ep000000/scene"]["skipped"] is False and s.stages["ep000000/splat"]["skipped"] is False
+    # even 20 steps learn the scene: held-out (every 8th view, masked) ~15 dB; a constant mean colour scores ~10 dB,
+    # a black render ~6.5 dB on these frames
+    splat = json.loads((out.with_name(out.name + ".work") / "scenes/ep000000/splat/manifest.json").read_text())
+    assert splat["info"]["trained"] and splat["info"]["heldout_psnr"] > 12.0
     assert s.n_failed == 0 and s.n_original == 1 and s.n_augmented == 1
     rep = validate_replay_buffer(out)
     assert rep.n_episodes == 2

@@ -60,7 +60,8 @@ class ExportSummary:
         failed after the retry budget; n_resampled: extra attempts over all emitted episodes;
         n_jobs: augmented jobs; resumed_jobs: jobs already done when this run started;
         status_counts: reasons of failed attempts by status; stages: per stage seconds / skipped;
-        timings_s: plan / render / write / pictures / total; frames_rendered: new frames rendered in this run;
+        timings_s: scene (plain dataset: groups built lazily) / plan / render / write / pictures / total;
+        frames_rendered: new frames rendered in this run;
         episodes_per_s: jobs finished per second in this run; pictures: contact sheet + trajectory plots.
     """
 
@@ -187,6 +188,7 @@ class _JobResult:
     copy_tail: bool
     plan_s: float
     render_s: float
+    scene_s: float = 0.0  # a plain dataset's scene group built (or read from its cache) for this job
 
 
 def _job_task(args) -> _JobResult:
@@ -194,12 +196,14 @@ def _job_task(args) -> _JobResult:
     cached plan), then render the new frames — and the replayed ones too when they cannot be copied raw."""
     assets, j, job, key, raw_ok = args
     d, m, a = job
-    t0 = time.perf_counter()
+    t_scene = time.perf_counter()
     assets = assets.for_demo(d)  # a plain dataset: the demo's scene group (built here on first use)
+    scene_s = time.perf_counter() - t_scene
     if assets.demos[d].contact_index is None:  # known only once a lazily built group has run its contact stage
         return _JobResult(j, None, 0, [f"scene: {assets.demos[d].name} has no splice frame (no contact frame, or "
                                        f"none with the pre-grasp clearance); not augmented"], None, False,
-                          time.perf_counter() - t0, 0.0)
+                          0.0, 0.0, scene_s)
+    t0 = time.perf_counter()
     cache = _plan_cache_path(assets, job, key)
     planned = _load_planned(cache) if cache.exists() else None
     if planned is None:
@@ -215,7 +219,7 @@ def _job_task(args) -> _JobResult:
         copy_tail = planned.obstacle is None and raw_ok
         n = planned.splice_index if copy_tail else planned.n_frames
         frames = render_episode_frames(assets, planned, range(n))
-    return _JobResult(j, planned, attempts, reasons, frames, copy_tail, t1 - t0, time.perf_counter() - t1)
+    return _JobResult(j, planned, attempts, reasons, frames, copy_tail, t1 - t0, time.perf_counter() - t1, scene_s)
 
 
 def _plan_cache_path(assets: SessionAssets, job: tuple[int, str, int], key: str) -> Path:
@@ -442,7 +446,7 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
     if not wpath.exists():
         _create_store(wpath, assets, key, len(jobs))
     buf, attrs = _open_store(wpath, key)
-    timings = {"plan_s": 0.0, "render_s": 0.0, "write_s": 0.0}
+    timings = {"scene_s": 0.0, "plan_s": 0.0, "render_s": 0.0, "write_s": 0.0}
     frames_rendered = 0
     try:
         recs = buf.meta["aug_job"][:]
@@ -467,6 +471,7 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
                                    address=cfg.ray_address):
                 j, planned = res.job, res.planned
                 d, m, a = jobs[j]
+                timings["scene_s"] += res.scene_s
                 timings["plan_s"] += res.plan_s
                 timings["render_s"] += res.render_s
                 if planned is None:
@@ -571,6 +576,22 @@ def _finish(out: Path, work: Path, assets: SessionAssets, key: str, jobs, resume
     return summary
 
 
+class _EpisodeFrames:
+    """One episode's frames of a zarr image array, decoded on access: a contact sheet shows 7 of an episode's
+    hundreds of frames (decoding them all took most of a real episode's picture time)."""
+
+    def __init__(self, arr, sl: slice) -> None:
+        self.arr, self.start, self.n = arr, int(sl.start), int(sl.stop - sl.start)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        if not -self.n <= int(k) < self.n:
+            raise IndexError(f"frame {k} of an episode of {self.n}")
+        return self.arr[self.start + int(k) % self.n]
+
+
 def _pictures(out: Path, assets: SessionAssets, buf, rec: dict, key: str, jobs) -> dict:
     from umi_aug.augment.pictures import contact_sheet
     from umi_aug.traj import plot_trajectories
@@ -581,7 +602,7 @@ def _pictures(out: Path, assets: SessionAssets, buf, rec: dict, key: str, jobs) 
     augm = [i for i in range(E) if rec["aug_mode"][i] > 0][:6]
     rows = orig + augm
     if rows:
-        frames = [buf.get_episode(i, ["camera0_rgb"])["camera0_rgb"] for i in rows]
+        frames = [_EpisodeFrames(buf["camera0_rgb"], buf.get_episode_slice(i)) for i in rows]
         splice = [int(rec["aug_splice_index"][i]) if rec["aug_splice_index"][i] >= 0 else len(f) - 1
                   for i, f in zip(rows, frames)]
         inv = {v: k for k, v in MODE_CODES.items()}
