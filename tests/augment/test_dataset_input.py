@@ -177,7 +177,8 @@ def test_real_demonstration_end_to_end(tmp_path):
 
     out = tmp_path / "real_aug.zarr"
     cfg = AugmentConfig(mode="freespace", n_per_demo=1, seed=0,
-                        splat=SplatStageConfig(iterations=20, max_gaussians=2000, sh_degree=0))
+                        splat=SplatStageConfig(iterations=20, max_gaussians=2000, sh_degree=0,
+                                               extra={"train_eval_views": 2, "sheet_views": 1}))
     inp = DatasetInput(sfm_stride=8, view_stride=4, background_points=300)
     s = export(REAL, out, cfg, dataset_input=inp, progress=False)
     assert s.stages["ep000000/scene"]["skipped"] is False and s.stages["ep000000/splat"]["skipped"] is False
