@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -167,24 +169,38 @@ def test_bad_settings_are_named(original, aug_assets):
         _dataset(other, aug_assets)
 
 
-@pytest.mark.slow  # prepares the session with the trainer's own settings (reconstruction again, ~30 s)
-def test_train_workspace_with_aug_freespace(aug_session, tmp_path):
+@pytest.mark.slow  # the first user of the session fixture demo_run pays for the demo run (shared with tests/cli)
+def test_train_workspace_with_aug_freespace(demo_run, tmp_path):
     """``aug=freespace`` end to end through the training workspace: the session holding task.dataset_path is
-    prepared, augmented samples are drawn, a few optimisation steps run and a checkpoint is written."""
+    prepared, augmented samples are drawn, a few optimisation steps run and a checkpoint is written.
+
+    The session is a copy of the one ``umi-aug demo`` made (session fixture ``demo_run``) with a copy of its work
+    folder: the trainer's settings give the same stage keys as the demo's, so every stage is a cache hit (asserted)
+    instead of a second reconstruction."""
+    import shutil
+
+    from tests.conftest import DEMO_SPLAT_ITERATIONS, DEMO_SPLAT_MAX_GAUSSIANS
     from tests.policy.helpers import tiny_config
     from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
     from umi_aug.policy.workspace import TrainWorkspace
 
-    cfg = tiny_config(aug_session / "dataset.zarr.zip", tmp_path, image_size=SIZE, obs_down_sample_steps=1,
+    assert demo_run.rc == 0
+    session = Path(shutil.copytree(demo_run.out / "session", tmp_path / "session"))
+    work = Path(shutil.copytree(demo_run.out / "work", tmp_path / "aug_work"))
+    cfg = tiny_config(session / "dataset.zarr.zip", tmp_path, image_size=224, obs_down_sample_steps=1,
                       action_horizon=8, val_ratio=0.0)
     cfg.aug.name = "freespace"
-    cfg.aug.splat_iterations = 0  # SfM-initialised scene: the training loop, not the 3DGS quality, is tested
-    cfg.aug.work_dir = str(tmp_path / "aug_work")
+    cfg.aug.splat_iterations = DEMO_SPLAT_ITERATIONS
+    cfg.aug.splat_max_gaussians = DEMO_SPLAT_MAX_GAUSSIANS
+    cfg.aug.work_dir = str(work)
     cfg.aug.ratio = 0.5
     cfg.training.max_steps = 3
     ws = TrainWorkspace(cfg)
     train, _ = ws.build_datasets()
     assert isinstance(train, AugmentedUmiDataset) and train.n_augmented == len(train.original)
+    stages = train.assets.stages
+    assert {"reconstruct", "splat"} <= stages.keys() and all(st.skipped for st in stages.values()), \
+        {k: st.skipped for k, st in stages.items()}
     summary = ws.run()
     assert (tmp_path / "run" / "checkpoints" / "latest.ckpt").is_file()
     assert summary["train_samples"] == len(train)

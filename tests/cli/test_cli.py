@@ -13,32 +13,33 @@ from umi_aug.cli import main
 
 
 @pytest.mark.slow
-def test_demo_runs_end_to_end(tmp_path, capsys):
-    out = tmp_path / "demo"
-    args = ["demo", "--out", str(out), "--episodes", "2", "--mode", "freespace", "--scan-frames", "30",
-            "--splat-iterations", "150"]
-    assert main(args) == 0
+def test_demo_runs_end_to_end(demo_run):
+    """The run itself is the session fixture ``demo_run`` (tests/conftest.py): CI-sized, 1 augmented episode and
+    60 3DGS steps (held-out PSNR ~17 dB; 40 steps gave 15.4 dB, 150 gave 22.6 dB — the thresholds below are sanity
+    bounds; 3DGS quality itself is tested in tests/splat)."""
+    out, args = demo_run.out, demo_run.args
+    assert demo_run.rc == 0
     for name in ("dataset.zarr.zip", "dataset.zarr.zip.summary.json", "render_vs_gt.png", "lens.png",
                  "summary.json", "session/session.json", "session/dataset.zarr.zip", "session/contact_sheet.png"):
         assert (out / name).is_file(), name
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["dataset_episodes"] == 3  # the original + 2 augmented
+    assert summary["dataset_episodes"] == 2  # the original + 1 augmented
     for pic in summary["export"]["pictures"].values():
         assert Path(pic).is_file(), pic
     stages = {s["stage"]: s["status"] for s in summary["stages"]}
     for name in ("geometry", "camera", "data", "sim", "recon", "splat", "traj", "augment"):
         assert stages[name] == "ran", name
-    assert summary["splat"]["trained"] and summary["splat"]["heldout_psnr"] > 11.0  # 150 steps only
+    assert summary["splat"]["trained"] and summary["splat"]["heldout_psnr"] > 11.0  # 60 steps only
     gt = summary["ground_truth_check"]
     assert gt["frames"] > 0 and np.isfinite(gt["psnr_db_median"]) and gt["psnr_db_median"] > 12.0
-    printed = capsys.readouterr().out
+    printed = demo_run.printed
     assert "augmented vs ground truth" in printed and "umi-aug augment" in printed
 
     from umi_aug.augment import read_episode_records
     from umi_aug.data import ReplayBuffer
 
     rec = read_episode_records(out / "dataset.zarr.zip")
-    assert rec["aug_mode"].tolist() == [0, 1, 1]
+    assert rec["aug_mode"].tolist() == [0, 1]
     buf = ReplayBuffer.open(out / "dataset.zarr.zip")
     orig, new = buf.get_episode(0), buf.get_episode(1)
     n_new = int(rec["aug_splice_index"][1])  # frames before the splice

@@ -21,16 +21,24 @@ def _one_thread():
 
 
 @pytest.fixture(scope="session")
-def square_env():
+def _square_env_spec():
     import importlib.util
 
     if importlib.util.find_spec("robosuite") is None:  # not importorskip: MuJoCo must be imported via sim.gl
         pytest.skip("robosuite not installed (pip install 'umi-aug[robomimic]')")
-    from umi_aug.eval.runner import _worker_state, load_eval_configs
+    from umi_aug.eval.runner import load_eval_configs
 
-    # the harness's own per-process env (shared with in-process run_eval calls: one env for the whole session)
-    spec = {"env_meta": load_eval_configs(CONFIGS_FILE)["env_args"], "key": "hold", "policy": "hold"}
-    yield _worker_state(spec)["env"]
+    return {"env_meta": load_eval_configs(CONFIGS_FILE)["env_args"], "key": "hold", "policy": "hold"}
+
+
+@pytest.fixture
+def square_env(_square_env_spec):
+    """The harness's own per-process env (shared with in-process run_eval calls: one env for the whole session).
+    Looked up per test: a run_eval with another env_meta (policy=replay: none) closes and replaces the harness's
+    env, so an env object held from an earlier test may be closed; this rebuilds it only in that case."""
+    from umi_aug.eval.runner import _worker_state
+
+    return _worker_state(_square_env_spec)["env"]
 
 
 @pytest.fixture(scope="session")

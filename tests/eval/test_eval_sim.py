@@ -126,7 +126,7 @@ def test_resume_after_interrupted_run(tmp_path, square_env, monkeypatch):
     from umi_aug.eval import runner
     from umi_aug.eval.results import ResultsLog
 
-    cfg = _cfg(tmp_path, policy="random", configs="3:8", horizon=15)
+    cfg = _cfg(tmp_path, policy="random", configs="3:8", horizon=5)  # the bookkeeping, not the rollout
     real_append = ResultsLog.append
     calls = {"n": 0}
 
@@ -156,7 +156,7 @@ def test_resume_after_interrupted_run(tmp_path, square_env, monkeypatch):
     ran.clear()
     again = runner.run_eval(cfg)
     assert ran == [] and _strip_summary(again) == _strip_summary(summary)
-    fresh = runner.run_eval(_cfg(tmp_path, policy="random", configs="3:8", horizon=15, out_dir=str(tmp_path / "b")))
+    fresh = runner.run_eval(_cfg(tmp_path, policy="random", configs="3:8", horizon=5, out_dir=str(tmp_path / "b")))
     fresh_lines = {json.loads(x)["config"]: json.loads(x) for x in (tmp_path / "b" / "results.jsonl").read_text()
                    .splitlines()}
     assert {r["config"]: _strip(r) for r in lines} == {k: _strip(v) for k, v in fresh_lines.items()}
@@ -164,7 +164,7 @@ def test_resume_after_interrupted_run(tmp_path, square_env, monkeypatch):
     assert (tmp_path / "run" / "init_success.png").stat().st_size > 10_000
     # the same folder with different settings is refused (no silent mixing)
     with pytest.raises(EvalError, match="horizon"):
-        runner.run_eval(_cfg(tmp_path, policy="random", configs="3:8", horizon=16))
+        runner.run_eval(_cfg(tmp_path, policy="random", configs="3:8", horizon=6))
 
 
 def _strip_summary(s: dict) -> dict:
