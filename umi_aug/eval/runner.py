@@ -140,9 +140,7 @@ def _worker_state(spec: dict[str, Any]) -> dict[str, Any]:
 
     env_key = json.dumps(spec["env_meta"], sort_keys=True, default=str)
     if _WORKER.get("env_key") != env_key:
-        if "env" in _WORKER:
-            _WORKER["env"].close()
-        _WORKER.clear()
+        _close_worker_state()
         import contextlib
         import io
 
@@ -159,13 +157,33 @@ def _worker_state(spec: dict[str, Any]) -> dict[str, Any]:
         def camera(size: int):
             if size not in cams:
                 cams[size] = WristFisheyeCamera(env.model, size)
+                if not _WORKER_CLOSE_REGISTERED:
+                    import atexit
+
+                    # Free the GL contexts before MuJoCo's EGL atexit (registered at the first context, so it
+                    # runs after this one) terminates the display; left to interpreter teardown, every context
+                    # prints an EGLError traceback from GLContext.__del__.
+                    atexit.register(_close_worker_state)
+                    _WORKER_CLOSE_REGISTERED.append(True)
             return cams[size]
 
-        _WORKER.update(env_key=env_key, env=env, probe=SceneProbe(env), camera=camera)
+        _WORKER.update(env_key=env_key, env=env, probe=SceneProbe(env), camera=camera, cameras=cams)
     if _WORKER.get("policy_key") != spec["key"]:
         _WORKER["policy"] = _build_policy(spec)
         _WORKER["policy_key"] = spec["key"]
     return _WORKER
+
+
+_WORKER_CLOSE_REGISTERED: list[bool] = []
+
+
+def _close_worker_state() -> None:
+    """Close this process's cameras (GL contexts) and env while EGL is still alive (registered with atexit)."""
+    for cam in _WORKER.get("cameras", {}).values():
+        cam.close()
+    if "env" in _WORKER:
+        _WORKER["env"].close()
+    _WORKER.clear()
 
 
 def _run_task(task: tuple[dict[str, Any], int, np.ndarray, int, dict | None]) -> dict[str, Any]:
