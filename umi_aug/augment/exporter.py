@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from umi_aug.augment.config import AugmentConfig, config_hash
-from umi_aug.augment.executor import map_ordered
+from umi_aug.augment.encode import FrameEncoder, can_encode_ahead, write_encoded
+from umi_aug.augment.executor import map_ordered, usable_cores
 from umi_aug.augment.plan import MODE_CODES, PlannedEpisode, episode_seed, try_plan_episode
 from umi_aug.augment.render import render_episode_frames
 from umi_aug.augment.session_assets import OVERLAY_MASK_RULE, SessionAssets, prepare_session, session_fingerprint
@@ -39,7 +40,7 @@ from umi_aug.errors import AugmentError, UmiAugError
 from umi_aug.io_utils import (PathLock, atomic_path, atomic_write_text, check_free_space, is_inside,
                                remove_tree_atomically, tree_size)
 
-__all__ = ["ExportSummary", "export", "export_jobs", "RECORD_KEYS", "read_episode_records", "summary_table"]
+__all__ = ["ExportSummary", "FAST_PATHS", "export", "export_jobs", "RECORD_KEYS", "read_episode_records", "summary_table"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +50,8 @@ RECORD_KEYS: dict[str, str] = {"aug_source_episode": "int64", "aug_mode": "int8"
                                "aug_job": "int64"}
 ATTR = "umi_aug_export"
 RECORD_CHUNK = 1024
+#: Speed-ups of :func:`export` (issue #17), each with its reference path kept (``fast_paths=()``).
+FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead")
 
 
 @dataclass
@@ -194,7 +197,7 @@ class _JobResult:
 def _job_task(args) -> _JobResult:
     """One export job (top-level, picklable: runs in this process or on an executor's worker): plan (or load the
     cached plan), then render the new frames — and the replayed ones too when they cannot be copied raw."""
-    assets, j, job, key, raw_ok = args
+    assets, j, job, key, raw_ok, overlay_cache = args
     d, m, a = job
     t_scene = time.perf_counter()
     assets = assets.for_demo(d)  # a plain dataset: the demo's scene group (built here on first use)
@@ -218,7 +221,7 @@ def _job_task(args) -> _JobResult:
     if planned is not None:
         copy_tail = planned.obstacle is None and raw_ok
         n = planned.splice_index if copy_tail else planned.n_frames
-        frames = render_episode_frames(assets, planned, range(n))
+        frames = render_episode_frames(assets, planned, range(n), cache_originals=overlay_cache)
     return _JobResult(j, planned, attempts, reasons, frames, copy_tail, t1 - t0, time.perf_counter() - t1, scene_s)
 
 
@@ -252,12 +255,14 @@ def _raw_copy_ok(dst_arr, src_arr) -> bool:
             and dst_arr.compressor.get_config() == src_arr.compressor.get_config())
 
 
-def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_arr, src_rows: np.ndarray
-                    ) -> None:
+def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_arr, src_rows: np.ndarray,
+                    encoded: list | None = None) -> float:
     """Append one episode like :meth:`ReplayBuffer.add_episode` (data first, ``meta/episode_ends`` LAST): the
     ``new_frames`` [n, S, S, 3] are encoded, the tail frames are the source array's rows ``src_rows`` copied as
     stored (compressed chunks, no decode/re-encode; a chunk missing in the source is the fill value there and is
-    left missing here)."""
+    left missing here). ``encoded``: the new frames' chunks already encoded (futures of
+    :meth:`umi_aug.augment.encode.FrameEncoder.submit`; the same bytes) — otherwise zarr encodes them here
+    (the reference path). Returns the seconds spent encoding on the encoder's threads (0 on the reference path)."""
     keys = sorted([*lowdim, IMAGE_KEY])
     if keys != buf.keys():
         raise AugmentError(f"{buf.name}: episode keys {keys} differ from the dataset's {buf.keys()}")
@@ -278,7 +283,10 @@ def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, 
         arr[old:old + L] = v
     img = buf[IMAGE_KEY]
     img.resize((old + L,) + img.shape[1:])
-    if n:
+    enc_s = 0.0
+    if n and encoded is not None:
+        enc_s = write_encoded(img, old, encoded)
+    elif n:
         img[old:old + n] = new_frames
     dst_store, src_store = img.store, src_arr.store
     for i, r in enumerate(np.asarray(src_rows, dtype=np.int64)):
@@ -290,11 +298,13 @@ def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, 
             if dkey in dst_store:
                 del dst_store[dkey]
     buf._commit_episode_end(old + L)
+    return enc_s
 
 
 def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: AugmentConfig, *,
            resume: bool = True, work_dir: str | os.PathLike | None = None, progress: bool = True,
-           pictures: bool = True, dataset_input=None) -> ExportSummary:
+           pictures: bool = True, dataset_input=None, fast_paths=None, encode_threads: int | None = None
+           ) -> ExportSummary:
     """Write the original and the augmented episodes of a session to a UMI zarr (``.zarr.zip`` or directory).
 
     Args:
@@ -308,6 +318,11 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
         work_dir: stage cache (default ``<out>.work``).
         progress: tqdm bar (episodes/s).
         pictures: contact sheet + trajectory plots next to the output.
+        fast_paths: the speed-ups to use (default: all of :data:`FAST_PATHS`; ``()``: the reference paths). The
+            dataset is byte-identical either way (``tests/augment/test_throughput.py``): ``"overlay_cache"`` —
+            the demo's pre-contact frames the gripper overlay draws from are decoded once per demo, not once per
+            episode; ``"encode_ahead"`` — new frames are JPEG-XL encoded on ``encode_threads`` threads (default:
+            the usable cores) while the next episode renders.
     Returns:
         :class:`ExportSummary` (also ``<out>.summary.json``).
     Raises:
@@ -322,7 +337,15 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
     # one run per output and per work dir: a second run fails at once naming the holder's PID
     with PathLock(out, "output", AugmentError), PathLock(work, "work dir", AugmentError, inside=True):
         return _export(session_dir, out, work, cfg, resume=resume, progress=progress, pictures=pictures,
-                       dataset_input=dataset_input)
+                       dataset_input=dataset_input, fast=_fast_paths(fast_paths), encode_threads=encode_threads)
+
+
+def _fast_paths(fast_paths) -> frozenset:
+    fast = frozenset(FAST_PATHS if fast_paths is None else fast_paths)
+    unknown = sorted(fast - set(FAST_PATHS))
+    if unknown:
+        raise AugmentError(f"fast_paths: unknown {unknown}; choose from {list(FAST_PATHS)}")
+    return fast
 
 
 def _check_paths(src: Path, out: Path, work: Path) -> None:
@@ -388,7 +411,8 @@ def _expected_bytes(src: Path, n_jobs_max: int, n_src_eps: int, include_original
 
 
 def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: bool, progress: bool,
-            pictures: bool, dataset_input) -> ExportSummary:
+            pictures: bool, dataset_input, fast: frozenset = frozenset(), encode_threads: int | None = None
+            ) -> ExportSummary:
     from tqdm import tqdm
 
     t_start = time.perf_counter()
@@ -446,7 +470,7 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
     if not wpath.exists():
         _create_store(wpath, assets, key, len(jobs))
     buf, attrs = _open_store(wpath, key)
-    timings = {"scene_s": 0.0, "plan_s": 0.0, "render_s": 0.0, "write_s": 0.0}
+    timings = {"scene_s": 0.0, "plan_s": 0.0, "render_s": 0.0, "write_s": 0.0, "encode_s": 0.0}
     frames_rendered = 0
     try:
         recs = buf.meta["aug_job"][:]
@@ -465,42 +489,71 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
         t_loop = time.perf_counter()
         bar = tqdm(total=len(jobs), initial=start, desc="augment", unit="episode", disable=not progress,
                    dynamic_ncols=True)
-        tasks = ((assets, j, jobs[j], key, raw_ok) for j in range(start, len(jobs)))
+        overlay_cache = "overlay_cache" in fast
+        tasks = ((assets, j, jobs[j], key, raw_ok, overlay_cache) for j in range(start, len(jobs)))
+        # encode_ahead: a finished episode's new frames are encoded on threads while the next one renders; it is
+        # committed (records, data, meta/episode_ends, progress attribute — in the reference's order) when the next
+        # result arrives or at the end, so a kill loses at most that one episode (resume redoes it).
+        encoder = (FrameEncoder(buf[IMAGE_KEY], encode_threads or usable_cores())
+                   if "encode_ahead" in fast and IMAGE_KEY in buf and can_encode_ahead(buf[IMAGE_KEY]) else None)
+        pending: list = []
+
+        def commit(res: _JobResult, encoded: list | None) -> None:
+            nonlocal frames_rendered
+            j, planned = res.job, res.planned
+            d, m, a = jobs[j]
+            if planned is None:
+                failures.append({"job": j, "demo": d, "mode": m, "aug_id": a,
+                                 "seed": episode_seed(cfg.seed, d, a, m), "attempts": res.attempts,
+                                 "reasons": res.reasons[-3:]})
+            else:
+                frames_rendered += planned.splice_index
+                if cfg.include_original and int(buf.meta["aug_splice_index"][d]) < 0:  # group built lazily
+                    buf.meta["aug_splice_index"][d] = int(planned.episode.source_contact_index)
+                t0 = time.perf_counter()
+                _add_records(buf, {"aug_source_episode": d, "aug_mode": MODE_CODES[m], "aug_id": a,
+                                   "aug_seed": planned.seed, "aug_attempts": planned.attempts,
+                                   "aug_splice_index": planned.splice_index, "aug_job": j})
+                ep = planned.episode
+                rows = np.zeros(0, np.int64)
+                if res.copy_tail:  # replayed frames: the original compressed chunks
+                    r0 = assets.original.get_episode_slice(d).start + int(ep.source_contact_index)
+                    rows = np.arange(r0, r0 + planned.n_frames - planned.splice_index)
+                timings["encode_s"] += _append_episode(buf, assets.umi_episode(ep), res.frames, src_img, rows,
+                                                       encoded)
+                timings["write_s"] += time.perf_counter() - t0
+            tally = dict(attrs.get("attempt_failures", {}))
+            for r in res.reasons:
+                tally[_status_of(r)] = tally.get(_status_of(r), 0) + 1
+            attrs.update({"last_job_done": j, "failures": failures, "attempt_failures": tally})
+            buf.root.attrs[ATTR] = attrs
+            bar.update(1)
+            rate = (j + 1 - start) / max(1e-9, time.perf_counter() - t_loop)
+            bar.set_postfix(eps=f"{rate:.2f}/s", failed=len(failures))
+
         with bar:
-            for res in map_ordered(_job_task, tasks, executor=cfg.executor, workers=cfg.workers,
-                                   address=cfg.ray_address):
-                j, planned = res.job, res.planned
-                d, m, a = jobs[j]
-                timings["scene_s"] += res.scene_s
-                timings["plan_s"] += res.plan_s
-                timings["render_s"] += res.render_s
-                if planned is None:
-                    failures.append({"job": j, "demo": d, "mode": m, "aug_id": a,
-                                     "seed": episode_seed(cfg.seed, d, a, m), "attempts": res.attempts,
-                                     "reasons": res.reasons[-3:]})
-                else:
-                    frames_rendered += planned.splice_index
-                    if cfg.include_original and int(buf.meta["aug_splice_index"][d]) < 0:  # group built lazily
-                        buf.meta["aug_splice_index"][d] = int(planned.episode.source_contact_index)
-                    t0 = time.perf_counter()
-                    _add_records(buf, {"aug_source_episode": d, "aug_mode": MODE_CODES[m], "aug_id": a,
-                                       "aug_seed": planned.seed, "aug_attempts": planned.attempts,
-                                       "aug_splice_index": planned.splice_index, "aug_job": j})
-                    ep = planned.episode
-                    rows = np.zeros(0, np.int64)
-                    if res.copy_tail:  # replayed frames: the original compressed chunks
-                        r0 = assets.original.get_episode_slice(d).start + int(ep.source_contact_index)
-                        rows = np.arange(r0, r0 + planned.n_frames - planned.splice_index)
-                    _append_episode(buf, assets.umi_episode(ep), res.frames, src_img, rows)
-                    timings["write_s"] += time.perf_counter() - t0
-                tally = dict(attrs.get("attempt_failures", {}))
-                for r in res.reasons:
-                    tally[_status_of(r)] = tally.get(_status_of(r), 0) + 1
-                attrs.update({"last_job_done": j, "failures": failures, "attempt_failures": tally})
-                buf.root.attrs[ATTR] = attrs
-                bar.update(1)
-                rate = (j + 1 - start) / max(1e-9, time.perf_counter() - t_loop)
-                bar.set_postfix(eps=f"{rate:.2f}/s", failed=len(failures))
+            try:
+                for res in map_ordered(_job_task, tasks, executor=cfg.executor, workers=cfg.workers,
+                                       address=cfg.ray_address):
+                    timings["scene_s"] += res.scene_s
+                    timings["plan_s"] += res.plan_s
+                    timings["render_s"] += res.render_s
+                    while pending:
+                        commit(*pending.pop(0))
+                    if encoder is not None and res.planned is not None and res.frames is not None:
+                        pending.append((res, encoder.submit(res.frames)))
+                    else:
+                        commit(res, None)
+                while pending:
+                    commit(*pending.pop(0))
+            except Exception:  # a later job failed: the finished episode before it is still written (as reference)
+                while pending:
+                    commit(*pending.pop(0))
+                raise
+            finally:
+                if encoder is not None:
+                    encoder.close()
+        timings["loop_s"] = time.perf_counter() - t_loop
     finally:
         buf.close()
     if out.name.endswith(".zip"):

@@ -25,7 +25,7 @@ import numpy as np
 from umi_aug.augment.overlay import composite_overlay, overlay_alpha, source_frames_by_width
 from umi_aug.errors import AugmentError
 
-__all__ = ["render_episode_frames", "overlay_sources", "placed_obstacles", "render_view"]
+__all__ = ["render_episode_frames", "overlay_originals", "overlay_sources", "placed_obstacles", "render_view"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from umi_aug.augment.plan import PlannedEpisode
@@ -102,12 +102,35 @@ def overlay_sources(assets: SessionAssets, planned: PlannedEpisode, frame_indice
                                   np.linspace(0.0, 1.0, c + 1), idx / n)
 
 
-def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_indices: Sequence[int]) -> np.ndarray:
+def overlay_originals(assets: SessionAssets, demo_index: int, src: np.ndarray) -> np.ndarray:
+    """Original frames ``src`` (``[K]`` indices ``<= contact_index``) of demo ``demo_index`` for the gripper
+    overlay, decoded once per demo: the demo's whole pre-contact range is decoded on first use by a call that
+    spans at least half of it, and kept (one demo at a time per process — export jobs run demo by demo), so an
+    episode costs no JPEG-XL decodes. Same pixels as
+    ``assets.original_frames(demo_index, src)`` (the reference path)."""
+    src = np.asarray(src, dtype=np.int64)
+    c = int(assets.demo(demo_index).contact_index)
+    if src.size and (src.min() < 0 or src.max() > c):
+        return assets.original_frames(demo_index, src)
+    ident = (assets.cache_id, int(demo_index), c)
+    slot = assets._lazy.get("overlay_originals")
+    if slot is None or slot[0] != ident:
+        span = int(src.max()) - int(src.min()) + 1 if src.size else 0
+        if 2 * span < c + 1:  # a few frames (an on-the-fly sample): decoding them directly is cheaper
+            return assets.original_frames(demo_index, src)
+        slot = (ident, assets.original_frames(demo_index, np.arange(c + 1)))
+        assets._lazy["overlay_originals"] = slot
+    return slot[1][src]
+
+
+def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_indices: Sequence[int], *,
+                          cache_originals: bool = True) -> np.ndarray:
     """Policy frames ``[K, S, S, 3]`` uint8 of ``planned`` at ``frame_indices`` (only those are made).
 
     Frames ``k < splice_index``: 3DGS render (+ obstacle) with the gripper overlay. Frames ``k >= splice_index``:
     original frame ``source_contact_index + (k − splice_index)`` of the demo (+ obstacle composited in obstacle
-    mode, gripper restored).
+    mode, gripper restored). ``cache_originals``: the overlay's original frames come from
+    :func:`overlay_originals` (decoded once per demo); False: decoded for this call (the reference path).
 
     Raises:
         AugmentError: an index outside ``[0, n_frames)``.
@@ -127,7 +150,8 @@ def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_
     if new.any():
         k_new = idx[new]
         src = overlay_sources(assets, planned, k_new)
-        originals = assets.original_frames(planned.demo_index, src)
+        originals = (overlay_originals(assets, planned.demo_index, src) if cache_originals
+                     else assets.original_frames(planned.demo_index, src))
         rendered = np.stack([render_view(assets, ep.T_world_cam[k], obstacles) for k in k_new])
         out[new] = composite_overlay(rendered, originals, alpha)
     if (~new).any():
