@@ -168,7 +168,7 @@ def compare_with_ground_truth(session_dir: Path, dataset: Path, assets, n_frames
                 T_mug0 = np.load(gt_dir / demo_name / "trajectory.npz")["T_world_mug"][0]
                 ks = np.unique(np.linspace(0, planned.splice_index - 1, per_ep).round().astype(int))
                 sl = buf.get_episode_slice(int(e))
-                frames = buf["camera0_rgb"][sl][ks]
+                frames = buf["camera0_rgb"].get_orthogonal_selection((ks + sl.start,))  # only these chunks
                 for k, frame in zip(ks, frames):
                     state.set(planned.episode.T_world_cam[k], float(planned.episode.gripper_width[k]), T_mug0)
                     raw = renderer.render(planned.episode.T_world_cam[k], state.data, rgb=True, depth=False).rgb
