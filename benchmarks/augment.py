@@ -73,6 +73,15 @@ def _per_ep(s, key: str) -> float:
     return s.timings_s.get(key, 0.0) / max(1, s.n_augmented)
 
 
+def _cpu_s() -> float:
+    """CPU seconds of this process so far, all threads (user + system): a measure of the work done that a shared
+    machine's load does not stretch, unlike wall time (but that overlap does not shorten either)."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def _speedups(session: Path, work: Path, cfg, rounds: int) -> dict:
     """Export the same episodes with every variant, ``rounds`` times interleaved; per variant the median of each
     round's stage seconds per episode, episodes/hour and the ratio to that round's reference."""
@@ -87,23 +96,26 @@ def _speedups(session: Path, work: Path, cfg, rounds: int) -> dict:
         ref_bytes = None
         for name, fast in VARIANTS.items():
             out = work / f"tp_{name}.zarr"
+            cpu0 = _cpu_s()
             s = export(session, out, cfg, work_dir=work / "work", resume=False, pictures=False, progress=False,
                        fast_paths=fast)
+            cpu = (_cpu_s() - cpu0) / max(1, s.n_augmented)
             stored = _stored(out)
             if ref_bytes is None:
                 ref_bytes = stored
             identical = stored.keys() == ref_bytes.keys() and all(stored[k] == ref_bytes[k] for k in stored)
             runs[name].append({"render": _per_ep(s, "render_s"), "plan": _per_ep(s, "plan_s"),
                                "encode": _per_ep(s, "encode_s"), "write": _per_ep(s, "write_s"),
-                               "wall": _per_ep(s, "loop_s"), "identical": identical, "n": s.n_augmented})
+                               "wall": _per_ep(s, "loop_s"), "cpu": cpu, "identical": identical,
+                               "n": s.n_augmented})
             load.append(os.getloadavg()[0])
             print(f"  round {r + 1}/{rounds} {name:>13}: {runs[name][-1]['wall']:.2f} s/episode wall, "
-                  f"byte-identical to reference: {identical}", flush=True)
+                  f"{cpu:.2f} CPU s/episode, byte-identical to reference: {identical}", flush=True)
     import numpy as np
 
     table = {}
     for name, rs in runs.items():
-        med = {k: float(np.median([x[k] for x in rs])) for k in ("render", "plan", "encode", "write", "wall")}
+        med = {k: float(np.median([x[k] for x in rs])) for k in ("render", "plan", "encode", "write", "wall", "cpu")}
         ratio = float(np.median([ref["wall"] / x["wall"] for ref, x in zip(runs["reference"], rs)]))
         table[name] = {**med, "episodes_per_hour": 3600.0 / med["wall"], "speedup_vs_reference": ratio,
                        "byte_identical": all(x["identical"] for x in rs), "rounds": rs}
@@ -293,11 +305,12 @@ def main() -> None:
                         f"median of {args.rounds} interleaved rounds; load average {min(ld):.1f}-{max(ld):.1f} "
                         f"on {os.cpu_count()} CPUs)")
         for col in ("variant", "render s/ep", "encode s/ep (threads)", "write s/ep (main)", "wall s/ep",
-                    "episodes/hour", "x reference (same round)", "dataset byte-identical"):
+                    "CPU s/ep", "episodes/hour", "x reference (same round)", "dataset byte-identical"):
             t.add_column(col, justify="right")
         for v, r in sp["variants"].items():
             t.add_row(v, f"{r['render']:.2f}", f"{r['encode']:.2f}", f"{r['write']:.2f}", f"{r['wall']:.2f}",
-                      f"{r['episodes_per_hour']:.0f}", f"{r['speedup_vs_reference']:.2f}", str(r["byte_identical"]))
+                      f"{r['cpu']:.2f}", f"{r['episodes_per_hour']:.0f}", f"{r['speedup_vs_reference']:.2f}",
+                      str(r["byte_identical"]))
         console.print(t)
         t = Table(title=f"one new frame ({prof['gaussians']} Gaussians, mean of {prof['frames']} poses)")
         for col in ("project ms", "bin ms", "raster ms", "render total ms", "to uint8 ms", "overlay ms",

@@ -40,7 +40,8 @@ from umi_aug.errors import AugmentError, UmiAugError
 from umi_aug.io_utils import (PathLock, atomic_path, atomic_write_text, check_free_space, is_inside,
                                remove_tree_atomically, tree_size)
 
-__all__ = ["ExportSummary", "FAST_PATHS", "export", "export_jobs", "RECORD_KEYS", "read_episode_records", "summary_table"]
+__all__ = ["ExportSummary", "FAST_PATHS", "export", "export_jobs", "RECORD_KEYS", "read_episode_records",
+           "summary_table"]
 
 log = logging.getLogger(__name__)
 
