@@ -46,7 +46,7 @@ from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
 from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
-from umi_aug.deploy.ur_rtde import URRTDERobot
+from umi_aug.deploy.ur_rtde import URRTDERobot, drain_waypoint_commands
 from umi_aug.deploy.wsg50 import WSG50Gripper, run_gripper_loop
 from umi_aug.errors import DeployError
 from umi_aug.geometry.se3 import pos_rotvec_to_pose
@@ -363,17 +363,10 @@ class SimServoLoop:
                                  f"robot.max_tracking_error_rad={cfg.max_tracking_error_rad}")
             self.state.put({"timestamp": self.clock.now() - cfg.obs_latency, "tcp_pose": sim.tcp_pose(),
                             "tcp_speed": sim.tcp_speed(), "q": sim.q, "qd": sim.qd, "target_pose": pose})
-            while True:
-                try:
-                    cmd = self.commands.get_nowait()
-                except queue.Empty:
-                    break
-                if cmd[0] == "stop":
-                    return
-                _, wp, t_wp = cmd
-                interp = interp.schedule_waypoint(np.asarray(wp, float), float(t_wp), cfg.max_pos_speed,
-                                                  cfg.max_rot_speed, curr_time=t_now + dt, last_waypoint_time=last_wp)
-                last_wp = float(t_wp)
+            interp, last_wp, stop = drain_waypoint_commands(self.commands, interp, last_wp, t_now + dt,
+                                                            cfg.max_pos_speed, cfg.max_rot_speed)
+            if stop:
+                return
             self.n_periods += 1
             if self.stats is not None:
                 self.stats[:] = [self.n_periods, self.n_physics_steps, self.n_dropped_steps]

@@ -174,18 +174,33 @@ class URServoLoop:
             self.state.put({"timestamp": t_recv - cfg.obs_latency, "tcp_pose": rr.getActualTCPPose(),
                             "tcp_speed": rr.getActualTCPSpeed(), "q": rr.getActualQ(), "qd": rr.getActualQd(),
                             "target_pose": pose})
-            while True:
-                try:
-                    cmd = self.commands.get_nowait()
-                except queue.Empty:
-                    break
-                if cmd[0] == "stop":
-                    return
-                _, wp, t_wp = cmd
-                interp = interp.schedule_waypoint(np.asarray(wp, float), float(t_wp), cfg.max_pos_speed,
-                                                  cfg.max_rot_speed, curr_time=t_now + dt, last_waypoint_time=last_wp)
-                last_wp = float(t_wp)
+            interp, last_wp, stop = drain_waypoint_commands(self.commands, interp, last_wp, t_now + dt,
+                                                            cfg.max_pos_speed, cfg.max_rot_speed)
+            if stop:
+                return
             rc.waitPeriod(t_period)
+
+
+def drain_waypoint_commands(commands: Any, interp: PoseTrajectoryInterpolator, last_wp: float | None,
+                            curr_time: float, max_pos_speed: float, max_rot_speed: float
+                            ) -> tuple[PoseTrajectoryInterpolator, float | None, bool]:
+    """Apply every queued ``("waypoint", pose, t)`` command to the interpolator (UMI's ``schedule_waypoint``
+    semantics, speed-limited, from ``curr_time`` = the next servo period, s); a ``("stop",)`` command ends the loop.
+
+    Returns:
+        (interpolator, time of the last scheduled waypoint, whether a stop was received)
+    """
+    while True:
+        try:
+            cmd = commands.get_nowait()
+        except queue.Empty:
+            return interp, last_wp, False
+        if cmd[0] == "stop":
+            return interp, last_wp, True
+        _, wp, t_wp = cmd
+        interp = interp.schedule_waypoint(np.asarray(wp, float), float(t_wp), max_pos_speed, max_rot_speed,
+                                          curr_time=curr_time, last_waypoint_time=last_wp)
+        last_wp = float(t_wp)
 
 
 def _process_main(cfg: URConfig, heartbeat: Any, commands: Any, state: SharedStateBuffer, stop_event: Any,
