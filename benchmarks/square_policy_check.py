@@ -1,0 +1,91 @@
+"""Why does a square policy fail? Train/eval consistency and open-loop action error of a checkpoint on its demos.
+
+Run: ``python benchmarks/square_policy_check.py --checkpoint CKPT --dataset square_demos/square_expert_fisheye84.zarr.zip
+[--episodes 0 7 30] [--samples 3]``
+
+For each listed demo episode (the demos of ``umi-aug square-demos`` start from seeded resets, seed = episode index
+when every seed succeeded — ``report.json`` lists them): (1) the evaluation harness's observation at the demo's
+start state — the env reset with that seed and eval's wrist camera — against the dataset's first row (image mean
+absolute difference in grey levels, position / rotation-vector / width error); (2) the policy's action chunk
+predicted from the dataset's own first observation (``--samples`` noise seeds) against the demo's next poses:
+position error per target (mm), and how far the demo itself moves over the chunk. Large open-loop errors on the
+policy's own training data mean an under-trained policy, not a harness fault.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--dataset", default="square_demos/square_expert_fisheye84.zarr.zip")
+    ap.add_argument("--episodes", type=int, nargs="+", default=[0, 7, 30])
+    ap.add_argument("--samples", type=int, default=3, help="noise seeds per chunk")
+    args = ap.parse_args()
+    import numpy as np
+    import torch
+    from rich.console import Console
+    from rich.table import Table
+
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.eval.policies import CheckpointEvalPolicy
+    from umi_aug.sim.square.camera import WristFisheyeCamera
+    from umi_aug.sim.square.env import SquareEnv
+
+    torch.set_num_threads(1)
+    report = Path(args.dataset).with_name("report.json")
+    seeds = json.loads(report.read_text())["seeds"] if report.is_file() else None
+    pol = CheckpointEvalPolicy.from_checkpoint(args.checkpoint)
+    n_exec = pol.n_exec
+    env = SquareEnv(image_size=None)
+    cam = WristFisheyeCamera(env.model, pol.image_size)
+    t1 = Table(title="eval observation at the demo's start vs the training row")
+    for c in ("episode", "seed", "image |Δ| mean", "image |Δ| max", "pos err mm", "rotvec err", "width err mm"):
+        t1.add_column(c, justify="right")
+    t2 = Table(title=f"open-loop chunk from the dataset's first observation: position error per target (mm), "
+                     f"targets 0…{n_exec}")
+    t2.add_column("episode", justify="right")
+    t2.add_column("noise seed", justify="right")
+    t2.add_column("error per target (mm)")
+    t2.add_column("demo moves (mm)", justify="right")
+    try:
+        with ReplayBuffer.open(args.dataset) as buf:
+            for ep in args.episodes:
+                seed = seeds[ep] if seeds else ep
+                sl = buf.get_episode_slice(ep)
+                obs = env.reset(seed=seed)
+                img = cam.render(env.data, env.wrist_pose()).astype(np.int16)
+                row = {k: np.asarray(buf[k][sl.start], np.float64) for k in
+                       ("robot0_eef_pos", "robot0_eef_rot_axis_angle", "robot0_gripper_width")}
+                d_img = buf["camera0_rgb"][sl.start]
+                diff = np.abs(img - d_img.astype(np.int16))
+                t1.add_row(str(ep), str(seed), f"{diff.mean():.2f}", str(int(diff.max())),
+                           f"{1000 * np.linalg.norm(obs['robot0_eef_pos'] - row['robot0_eef_pos']):.3f}",
+                           f"{np.linalg.norm(obs['robot0_eef_rot_axis_angle'] - row['robot0_eef_rot_axis_angle']):.4f}",
+                           f"{1000 * abs(np.ravel(obs['robot0_gripper_width'])[0] - row['robot0_gripper_width'][0]):.3f}")
+                o = {k: np.stack([v, v]) for k, v in row.items()} | {"camera0_rgb": np.stack([d_img, d_img])}
+                demo = np.asarray(buf["robot0_eef_pos"][sl.start:sl.start + n_exec + 1], np.float64)
+                for s in range(args.samples):
+                    chunk = pol.policy.predict_action(o, n_steps=n_exec + 1, generator=torch.Generator().manual_seed(s))
+                    err = 1000 * np.linalg.norm(chunk[: len(demo), :3] - demo, axis=1)
+                    t2.add_row(str(ep), str(s), " ".join(f"{e:.0f}" for e in err),
+                               f"{1000 * np.linalg.norm(demo[-1] - demo[0]):.0f}")
+    finally:
+        cam.close()
+        env.close()
+    console = Console(width=160)
+    console.print(t1)
+    console.print(t2)
+
+
+if __name__ == "__main__":
+    main()
