@@ -52,15 +52,19 @@ class PoseTrajectoryInterpolator:
         R = self._T[:, :3, :3]
         self._delta = so3_log(np.swapaxes(R[:-1], -1, -2) @ R[1:]) if len(t) > 1 else np.zeros((0, 3))
 
+    def _segment(self, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Segment index ``i`` and fraction ``s`` in [0, 1] of each query time (clamped to the time span)."""
+        tc = np.clip(ts, self.times[0], self.times[-1])
+        i = np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, len(self.times) - 2)
+        return i, (tc - self.times[i]) / (self.times[i + 1] - self.times[i])
+
     def __call__(self, t: float | np.ndarray) -> np.ndarray:
         """Pose(s) at time(s) ``t``: [6] for a scalar, [M, 6] for an array."""
         ts = np.atleast_1d(np.asarray(t, np.float64))
         if len(self.times) == 1:
             out = np.repeat(self.poses, len(ts), axis=0)
         else:
-            tc = np.clip(ts, self.times[0], self.times[-1])
-            i = np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, len(self.times) - 2)
-            s = (tc - self.times[i]) / (self.times[i + 1] - self.times[i])
+            i, s = self._segment(ts)
             p0, p1 = self.poses[i, :3], self.poses[i + 1, :3]
             pos = np.where((s == 1.0)[:, None], p1, p0 + s[:, None] * (p1 - p0))
             if len(ts) == 1:  # the servo loop's query: OpenCV's Rodrigues (C) for exp and log
@@ -82,9 +86,7 @@ class PoseTrajectoryInterpolator:
         if len(self.times) == 1:
             out = np.repeat(self.poses, len(ts), axis=0)
         else:
-            tc = np.clip(ts, self.times[0], self.times[-1])
-            i = np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, len(self.times) - 2)
-            s = (tc - self.times[i]) / (self.times[i + 1] - self.times[i])
+            i, s = self._segment(ts)
             out = pose_to_pos_rotvec(interpolate_pose(self._T[i], self._T[i + 1], s))
         return out[0] if np.ndim(t) == 0 else out
 
