@@ -31,48 +31,14 @@ from typing import Any
 import numpy as np
 
 from umi_aug.geometry import so3_log
-from umi_aug.sim.square.expert import ExpertConfig
+from umi_aug.sim.square.expert import (PREGRASP_POS_TOL_M, PREGRASP_ROT_TOL_DEG, expert_pregrasp_pose,
+                                       pregrasp_error)
 
 __all__ = ["PREGRASP_POS_TOL_M", "PREGRASP_ROT_TOL_DEG", "LIFT_HEIGHT_M", "expert_pregrasp_pose",
            "SceneProbe", "rollout_config", "VideoSpec"]
 
-#: pre-grasp sub-goal tolerance: grip-site position error (m) …
-PREGRASP_POS_TOL_M: float = 0.02
-#: … and rotation error (deg, modulo the 180° gripper symmetry)
-PREGRASP_ROT_TOL_DEG: float = 15.0
 #: nut lift sub-goal: nut centre this far above its start height (m) with a finger touching it
 LIFT_HEIGHT_M: float = 0.03
-
-
-def expert_pregrasp_pose(T_world_nut: np.ndarray, table_z: float, cfg: ExpertConfig | None = None) -> np.ndarray:
-    """The scripted expert's pre-grasp grip-site pose for a nut pose (its ``approach`` goal).
-
-    Args:
-        T_world_nut: np.ndarray,  # [4, 4] nut body pose
-        table_z: table-top height, metres.
-    Returns:
-        T_world_site: np.ndarray,  # [4, 4]: hover point ``hover_height`` above the handle point
-                                   # (``grasp_offset`` along nut x), z axis down, x along nut y
-    """
-    cfg = cfg or ExpertConfig()
-    handle = T_world_nut[:3, 3] + cfg.grasp_offset * T_world_nut[:3, 0]
-    p = handle + np.array([0.0, 0.0, cfg.hover_height])
-    p[2] = max(p[2], table_z + cfg.grasp_height + cfg.hover_height)
-    z = np.array([0.0, 0.0, -1.0])
-    x = T_world_nut[:3, 1] - z * float(T_world_nut[:3, 1] @ z)
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    T[:3, 3] = p
-    return T
-
-
-def _pregrasp_error(T_site: np.ndarray, T_goal: np.ndarray) -> tuple[float, float]:
-    """(position error m, rotation error rad modulo a half turn about the goal's z)."""
-    dp = float(np.linalg.norm(T_site[:3, 3] - T_goal[:3, 3]))
-    flip = np.diag([-1.0, -1.0, 1.0])
-    dr = min(float(np.linalg.norm(so3_log(T_goal[:3, :3] @ F @ T_site[:3, :3].T))) for F in (np.eye(3), flip))
-    return dp, dr
 
 
 class SceneProbe:
@@ -247,7 +213,7 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
                 nut_rest = nut
                 T_pre = expert_pregrasp_pose(nut, probe.table_z)
             if not touched:  # min errors over the approach; reached = first step within tolerance
-                dp, dr = _pregrasp_error(probe.site_pose(), T_pre)
+                dp, dr = pregrasp_error(probe.site_pose(), T_pre)
                 rec["pregrasp_min_pos_err_m"] = min(rec["pregrasp_min_pos_err_m"], dp)
                 rec["pregrasp_min_rot_err_deg"] = min(rec["pregrasp_min_rot_err_deg"], math.degrees(dr))
                 near = dp <= PREGRASP_POS_TOL_M and dr <= math.radians(PREGRASP_ROT_TOL_DEG)

@@ -17,7 +17,8 @@ import numpy as np
 from umi_aug.geometry import so3_log
 from umi_aug.sim.square.env import GRIP_SITE, NUT_BODY, PEG_BODY, SquareEnv
 
-__all__ = ["ExpertConfig", "SquareExpert", "PHASES", "nut_yaw_error"]
+__all__ = ["ExpertConfig", "SquareExpert", "PHASES", "nut_yaw_error", "expert_pregrasp_pose", "pregrasp_error",
+           "PREGRASP_POS_TOL_M", "PREGRASP_ROT_TOL_DEG"]
 
 PHASES: tuple[str, ...] = ("approach", "descend", "grasp", "lift", "align", "insert", "release", "retreat", "done")
 #: OSC_POSE output_max of robomimic's square env_meta: metres / radians per unit action.
@@ -44,6 +45,44 @@ class ExpertConfig:
     release_steps: int = 8
     retreat_height: float = 0.10     # retreat this far up after release
     phase_timeout: int = 80          # steps after which a phase is left anyway
+
+
+#: pre-grasp sub-goal tolerance: grip-site position error (m) …
+PREGRASP_POS_TOL_M: float = 0.02
+#: … and rotation error (deg, modulo the 180° gripper symmetry)
+PREGRASP_ROT_TOL_DEG: float = 15.0
+
+
+def expert_pregrasp_pose(T_world_nut: np.ndarray, table_z: float, cfg: ExpertConfig | None = None) -> np.ndarray:
+    """The scripted expert's pre-grasp grip-site pose for a nut pose (its ``approach`` goal).
+
+    Args:
+        T_world_nut: np.ndarray,  # [4, 4] nut body pose
+        table_z: table-top height, metres.
+    Returns:
+        T_world_site: np.ndarray,  # [4, 4]: hover point ``hover_height`` above the handle point
+                                   # (``grasp_offset`` along nut x), z axis down, x along nut y
+    """
+    cfg = cfg or ExpertConfig()
+    handle = T_world_nut[:3, 3] + cfg.grasp_offset * T_world_nut[:3, 0]
+    p = handle + np.array([0.0, 0.0, cfg.hover_height])
+    p[2] = max(p[2], table_z + cfg.grasp_height + cfg.hover_height)
+    z = np.array([0.0, 0.0, -1.0])
+    x = T_world_nut[:3, 1] - z * float(T_world_nut[:3, 1] @ z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = p
+    return T
+
+
+def pregrasp_error(T_site: np.ndarray, T_goal: np.ndarray) -> tuple[float, float]:
+    """(position error m, rotation error rad modulo a half turn about the goal's z) of a grip-site pose
+    ``T_site`` [4, 4] against a pre-grasp pose ``T_goal`` [4, 4] (world frame)."""
+    dp = float(np.linalg.norm(T_site[:3, 3] - T_goal[:3, 3]))
+    flip = np.diag([-1.0, -1.0, 1.0])
+    dr = min(float(np.linalg.norm(so3_log(T_goal[:3, :3] @ F @ T_site[:3, :3].T))) for F in (np.eye(3), flip))
+    return dp, dr
 
 
 def _wrap(a: float, period: float) -> float:
