@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 
-from umi_aug.geometry import so3_log
 from umi_aug.sim.square.expert import (PREGRASP_POS_TOL_M, PREGRASP_ROT_TOL_DEG, expert_pregrasp_pose,
                                        pregrasp_error)
 
