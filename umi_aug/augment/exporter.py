@@ -304,8 +304,8 @@ def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, 
 
 def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: AugmentConfig, *,
            resume: bool = True, work_dir: str | os.PathLike | None = None, progress: bool = True,
-           pictures: bool = True, dataset_input=None, fast_paths=None, encode_threads: int | None = None
-           ) -> ExportSummary:
+           pictures: bool = True, dataset_input=None, fast_paths=None, encode_threads: int | None = None,
+           source=None) -> ExportSummary:
     """Write the original and the augmented episodes of a session to a UMI zarr (``.zarr.zip`` or directory).
 
     Args:
@@ -324,6 +324,9 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
             the demo's pre-contact frames the gripper overlay draws from are decoded once per demo, not once per
             episode; ``"encode_ahead"`` — new frames are JPEG-XL encoded on ``encode_threads`` threads (default:
             the usable cores) while the next episode renders.
+        source: another kind of input that knows its own checks and stages (``check(image_size)``,
+            ``fingerprint()``, ``dataset``, ``n_augment(n_episodes)``, ``prepare(work, cfg, progress)``), e.g.
+            :class:`umi_aug.augment.square_source.SquareSource` for ``session_dir`` = a square demo folder.
     Returns:
         :class:`ExportSummary` (also ``<out>.summary.json``).
     Raises:
@@ -338,7 +341,8 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
     # one run per output and per work dir: a second run fails at once naming the holder's PID
     with PathLock(out, "output", AugmentError), PathLock(work, "work dir", AugmentError, inside=True):
         return _export(session_dir, out, work, cfg, resume=resume, progress=progress, pictures=pictures,
-                       dataset_input=dataset_input, fast=_fast_paths(fast_paths), encode_threads=encode_threads)
+                       dataset_input=dataset_input, fast=_fast_paths(fast_paths), encode_threads=encode_threads,
+                       source=source)
 
 
 def _fast_paths(fast_paths) -> frozenset:
@@ -412,16 +416,22 @@ def _expected_bytes(src: Path, n_jobs_max: int, n_src_eps: int, include_original
 
 
 def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: bool, progress: bool,
-            pictures: bool, dataset_input, fast: frozenset = frozenset(), encode_threads: int | None = None
-            ) -> ExportSummary:
+            pictures: bool, dataset_input, fast: frozenset = frozenset(), encode_threads: int | None = None,
+            source=None) -> ExportSummary:
     from tqdm import tqdm
 
     t_start = time.perf_counter()
     from umi_aug.augment import dataset_source as dsrc
     from umi_aug.augment.preflight import check_session_inputs
 
-    is_dataset = dsrc.is_dataset_path(session_dir)
-    if is_dataset:  # checked before anything is removed or computed: one error naming the key/episode
+    is_dataset = source is None and dsrc.is_dataset_path(session_dir)
+    if source is not None:  # checked before anything is removed or computed
+        source.check(cfg.image_size)
+        key = _run_key(cfg, source.fingerprint())
+        src_ds = Path(source.dataset)
+        n_src = _n_episodes(src_ds)
+        n_aug = source.n_augment(n_src)
+    elif is_dataset:  # checked before anything is removed or computed: one error naming the key/episode
         dataset_input = dataset_input or dsrc.DatasetInput()
         dsrc.check_dataset(session_dir, cfg.image_size, dataset_input)
         key = _run_key(cfg, config_hash(dsrc.dataset_fingerprint(session_dir), dataset_input))
@@ -459,7 +469,9 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
         check_free_space(out, need, f"writing {out.name} (about {n_aug * len(cfg.modes) * cfg.n_per_demo} new "
                          f"episodes{' + a .zarr.zip copy of the working store' if out.name.endswith('.zip') else ''})",
                          AugmentError)
-    if is_dataset:
+    if source is not None:
+        assets = source.prepare(work, cfg, progress=progress)
+    elif is_dataset:
         # scenes built per group when its first episode is generated (cached on disk), never all up front
         assets = dsrc.prepare_dataset(session_dir, work, cfg, dataset_input, progress=progress, lazy=True)
     else:

@@ -177,6 +177,10 @@ def try_plan_episode(assets: SessionAssets, demo_index: int, aug_id: int, mode: 
         if obstacle is not None and not _frames_clear_of_hull(problem, obstacle, ep.T_world_cam):
             failures.append(f"attempt {attempt}: a frame's gripper is inside the inflated obstacle hull")
             continue
+        why = assets.embodiment_failure(demo_index, ep)
+        if why is not None:
+            failures.append(f"attempt {attempt}: not executable by the robot: {why}")
+            continue
         dt = time.perf_counter() - t0
         planned = PlannedEpisode(int(demo_index), d.name, int(aug_id), mode, seed, attempt + 1, ep,
                                  _report_dict(rep), record, failures, dt)

@@ -198,6 +198,11 @@ class SessionAssets:
         returns the demo's scene group)."""
         return self
 
+    def embodiment_failure(self, demo_index: int, episode) -> str | None:
+        """Why the robot cannot execute a planned :class:`umi_aug.traj.AugmentedEpisode` (None: it can, or the
+        input knows no robot — a UMI session's hand-held gripper; a simulated robot's input overrides this)."""
+        return None
+
     def umi_episode(self, episode) -> dict[str, np.ndarray]:
         """UMI replay-buffer keys of an :class:`umi_aug.traj.AugmentedEpisode` (no images)."""
         return episode.umi_episode()
