@@ -16,8 +16,9 @@ DATASET_SPLAT_MAX_GAUSSIANS = 30_000
 def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentParser:
     """Add the ``augment`` sub-command (imports nothing heavy)."""
     p = sub.add_parser("augment", help="augmented UMI dataset (original + new episodes) from a session or dataset")
-    p.add_argument("session", help="UMI session folder (demos/mapping, demos/demo_*, calibration/, dataset.zarr.zip) "
-                   "or a plain UMI dataset (*.zarr.zip / zarr directory: scenes built from its own frames)")
+    p.add_argument("session", help="UMI session folder (demos/mapping, demos/demo_*, calibration/, dataset.zarr.zip), "
+                   "a plain UMI dataset (*.zarr.zip / zarr directory: scenes built from its own frames), or a "
+                   "square demo folder (`umi-aug square-demos` output: simulator scene model, Panda-feasible paths)")
     p.add_argument("--mode", choices=("freespace", "obstacle", "both"), default="freespace")
     p.add_argument("-n", "--n-per-demo", type=int, default=4, help="augmented episodes per demo and mode")
     p.add_argument("--out", required=True, help="output dataset (*.zarr.zip, or a zarr directory)")
@@ -44,9 +45,11 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
     p.add_argument("--restart", action="store_true", help="discard a previous/interrupted export at --out instead of resuming (only one "
                    "umi-aug wrote: inputs and other folders are refused)")
     p.add_argument("--no-pictures", action="store_true")
-    g = p.add_argument_group("plain dataset input (a *.zarr.zip instead of a session folder)")
+    g = p.add_argument_group("plain dataset / square demo folder input")
     g.add_argument("--episodes", default=None, metavar="A:B",
                    help="episodes to augment, e.g. 0:50 or 0,3,7:9 (default all; the others are copied unchanged)")
+    g.add_argument("--no-embodiment", action="store_true",
+                   help="square demos: skip the simulated Panda's feasibility check of each trajectory")
     g.add_argument("--scene-group", type=int, default=1, metavar="N",
                    help="N consecutive episodes share one scene (default 1: a scene per episode)")
     g.add_argument("--scene-map", default=None, metavar="JSON",
@@ -101,9 +104,17 @@ def cmd_augment(args: argparse.Namespace) -> int:
 
     from umi_aug.augment.exporter import export, summary_table
 
+    from umi_aug.augment.dataset_source import parse_episodes
+    from umi_aug.augment.square_source import SquareInput, SquareSource, is_square_demos
+
     cfg = config_from_args(args)
+    source = None
+    if is_square_demos(args.session):
+        source = SquareSource(args.session, SquareInput(episodes=parse_episodes(args.episodes),
+                                                        embodiment=not args.no_embodiment))
     s = export(args.session, args.out, cfg, resume=not args.restart, work_dir=args.work,
-               pictures=not args.no_pictures, dataset_input=dataset_input_from_args(args))
+               pictures=not args.no_pictures, dataset_input=None if source else dataset_input_from_args(args),
+               source=source)
     console = Console()
     console.print(summary_table(s))
     for k, v in s.pictures.items():

@@ -55,7 +55,15 @@ def cmd_square_demos(args: argparse.Namespace) -> int:
 def cmd_square_convert(args: argparse.Namespace) -> int:
     from umi_aug.sim.square.convert import convert_robomimic_hdf5
 
-    print(json.dumps(convert_robomimic_hdf5(args.hdf5, args.out, args.image_size, args.max_demos)))
+    from pathlib import Path
+
+    from umi_aug.io_utils import atomic_write_text
+
+    paths = convert_robomimic_hdf5(args.hdf5, args.out, args.image_size, args.max_demos)
+    # the same report.json as square-demos, so `umi-aug augment <out>` takes the folder as square demos
+    atomic_write_text(Path(args.out) / "report.json", json.dumps({"source": str(args.hdf5), "paths": paths,
+                                                                  "image_size": args.image_size}, indent=2) + "\n")
+    print(json.dumps(paths))
     return 0
 
 
