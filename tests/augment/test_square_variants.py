@@ -244,3 +244,18 @@ def test_spartn_window_of_the_policy_dataset_is_corrective(fake_export, tmp_path
     np.testing.assert_allclose(T_abs[0], T_cur, atol=1e-5)  # target 0: the perturbed current pose
     np.testing.assert_allclose(T_abs[1:], T_demo_tcp[t + 1:t + 16], atol=5e-5)  # back on the demo
     assert np.linalg.norm(T_cur[:3, 3] - T_demo_tcp[t][:3, 3]) > 1e-4  # and the current pose was really off it
+
+
+def test_variant_refuses_to_overwrite_its_source(fake_export):
+    from umi_aug.augment.square_variants import write_variant
+    from umi_aug.errors import AugmentError
+
+    src, _ = fake_export
+    before = src.read_bytes()
+    with pytest.raises(AugmentError, match="is the source export itself"):
+        write_variant("ours", src, src, 1, progress=False)
+    with pytest.raises(AugmentError, match="variant 'oracle'"):
+        write_variant("oracle", src, src.with_name("x.zarr.zip"), 1, progress=False)
+    with pytest.raises(AugmentError, match="n_demos = 4; the export holds 3"):
+        write_variant("none", src, src.with_name("x.zarr.zip"), 4, progress=False)
+    assert src.read_bytes() == before and not src.with_name("x.zarr.zip").exists()

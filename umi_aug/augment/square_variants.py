@@ -159,6 +159,9 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
         raise AugmentError(f"write_variant: variant {variant!r}; expected one of {VARIANTS}")
     if variant in ("gt_render", "spartn") and render_new is None:
         raise AugmentError(f"write_variant({variant}): needs render_new (the frames it renders)")
+    if Path(out_path).resolve() == Path(ours_path).resolve():
+        raise AugmentError(f"write_variant({variant}): out_path {out_path} is the source export itself; choose "
+                           "another path (the export would be replaced)")
     rec = read_episode_records(ours_path)
     src_ep, splice, aug_id = rec["aug_source_episode"], rec["aug_splice_index"], rec["aug_id"]
     n_src = int((aug_id < 0).sum())
