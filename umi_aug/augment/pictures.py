@@ -58,7 +58,7 @@ def contact_sheet(
             tag = " splice" if splice_indices is not None and k == last_new else (" end" if k == n_t - 1 else "")
             a.set_title(f"t={k}{tag}", fontsize=7)
         axes[e, 0].set_ylabel(row_names[e] if row_names else f"ep {e}", fontsize=8)
-    size = episodes[0].shape[1] if n_ep and len(episodes[0]) else 0
+    size = np.asarray(episodes[0][0]).shape[0] if n_ep and len(episodes[0]) else 0
     fig.suptitle(f"policy images ({size}², UMI layout): original demo and new episodes (new frames up to the "
                  "splice, original frames after it)", fontsize=9)
     return save_figure(fig, path)
