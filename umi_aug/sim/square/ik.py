@@ -81,6 +81,9 @@ class PandaIK:
                         if mj.mj_id2name(model, mj.mjtObj.mjOBJ_BODY, b).startswith(("robot0_", "gripper0_"))]
         self._robot_body = np.zeros(model.nbody, dtype=bool)
         self._robot_body[robot_bodies] = True
+        # the static pedestal: a robot contact with it counts as self-collision
+        self._mount_body = np.array([(mj.mj_id2name(model, mj.mjtObj.mjOBJ_BODY, b) or "").startswith("mount0_")
+                                     for b in range(model.nbody)], dtype=bool)
 
     def site_pose(self, q: np.ndarray, data_src) -> np.ndarray:
         """Site pose ``[4, 4]`` with arm joints ``q`` and everything else from ``data_src``."""
@@ -126,6 +129,82 @@ class PandaIK:
             mj.mj_comPos(m, d)
             err = self._error(T_goal)
         return q, err, it
+
+    def refine(self, data_src, T_world_site: np.ndarray, q_start: np.ndarray, *, lo: np.ndarray | None = None,
+               hi: np.ndarray | None = None, q_rest: np.ndarray | None = None, null_gain: float = 0.0,
+               max_iters: int = _MAX_ITERS) -> tuple[np.ndarray, float, float, int]:
+        """One damped-least-squares descent from ``q_start`` (no restarts), for tracking a path.
+
+        Unlike :meth:`solve`'s iteration, a joint held at a bound whose step points outward is dropped from the
+        Jacobian for that step, so the redundant 7th DoF takes over instead of the iteration stalling there.
+
+        Args:
+            data_src: ``mujoco.MjData`` giving the rest of the scene (not modified).
+            T_world_site: np.ndarray,  # [4, 4] target, metres
+            q_start: np.ndarray,  # [7] start joints, rad (clipped into [lo, hi])
+            lo, hi: np.ndarray,  # [7] joint bounds, rad (default: the model's joint ranges)
+            q_rest: np.ndarray,  # [7] null-space attractor, rad (used when null_gain > 0)
+            null_gain: fraction of ``q_rest - q`` added per iteration, projected into the task's null space.
+        Returns:
+            (q [7] rad, position error m, rotation error rad (geodesic), iterations)
+        """
+        mj, m, d = self._mj, self.model, self.data
+        lo = self.lo if lo is None else np.asarray(lo, dtype=np.float64)
+        hi = self.hi if hi is None else np.asarray(hi, dtype=np.float64)
+        T_goal = np.asarray(T_world_site, dtype=np.float64)
+        jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        q = np.clip(np.asarray(q_start, dtype=np.float64), lo, hi)
+        self._load(data_src, q)
+        err = self._error(T_goal)
+        eye6, it = np.eye(6), 0
+        for it in range(1, int(max_iters) + 1):
+            if np.linalg.norm(err[:3]) < _CONV_POS and np.linalg.norm(err[3:]) < _CONV_ROT:
+                break
+            mj.mj_jacSite(m, d, jacp, jacr, self.site)
+            J = np.vstack([jacp[:, self.dadr], jacr[:, self.dadr]])  # [6, 7]
+            free = np.ones(7, dtype=bool)
+            for _ in range(7):
+                Jf = J * free
+                J_pinv = Jf.T @ np.linalg.solve(Jf @ Jf.T + _DAMPING**2 * eye6, eye6)  # [7, 6]
+                dq = J_pinv @ err
+                if null_gain > 0.0 and q_rest is not None:
+                    dq += (np.eye(7) - J_pinv @ Jf) @ (null_gain * (np.asarray(q_rest) - q) * free)
+                out = free & (((q <= lo) & (dq < 0.0)) | ((q >= hi) & (dq > 0.0)))
+                if not out.any():
+                    break
+                free &= ~out
+            n = np.linalg.norm(dq)
+            if n > _MAX_STEP:
+                dq *= _MAX_STEP / n
+            q = np.clip(q + dq, lo, hi)
+            d.qpos[self.qadr] = q
+            mj.mj_kinematics(m, d)
+            mj.mj_comPos(m, d)
+            err = self._error(T_goal)
+        return q, float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:])), it
+
+    def contacts(self, data_src, q: np.ndarray, max_penetration_m: float = _PENETRATION_M,
+                 self_collision: bool = True) -> list[tuple[str, str, float]]:
+        """Contacts of the moving robot (arm + gripper) penetrating deeper than ``max_penetration_m`` (metres)
+        with arm joints ``q``, fingers and everything else from ``data_src``: with the scene (table, pegs, nuts)
+        and, when ``self_collision``, with itself or its mount. Returns ``(geom_a, geom_b, distance m)`` (< 0)."""
+        mj, m, d = self._mj, self.model, self.data
+        self._load(data_src, q)
+        mj.mj_collision(m, d)
+        out = []
+        for c in d.contact[: d.ncon]:
+            if c.dist >= -max_penetration_m:
+                continue
+            b1, b2 = m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]
+            arm1, arm2 = self._robot_body[b1], self._robot_body[b2]
+            if not (arm1 or arm2):
+                continue
+            own = (arm1 or self._mount_body[b1]) and (arm2 or self._mount_body[b2])
+            if own and not self_collision:
+                continue
+            out.append((mj.mj_id2name(m, mj.mjtObj.mjOBJ_GEOM, c.geom1) or str(c.geom1),
+                        mj.mj_id2name(m, mj.mjtObj.mjOBJ_GEOM, c.geom2) or str(c.geom2), float(c.dist)))
+        return out
 
     def collisions(self, data_src, q: np.ndarray) -> list[str]:
         """Robot contacts penetrating deeper than 1 mm with arm joints ``q`` (state of ``data_src`` otherwise)."""
