@@ -162,6 +162,21 @@ def _robot_bodies(model) -> list[str]:
     return [n for n in names if n.startswith(ROBOT_BODY_PREFIXES)]
 
 
+def _robot_state_indices(model) -> tuple[np.ndarray, np.ndarray]:
+    """Indices into robosuite's flat state ``[time, qpos, qvel]`` of the robot's joint positions and velocities."""
+    import mujoco
+
+    q, v = [], []
+    for j in range(model.njnt):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or ""
+        if name.startswith(ROBOT_BODY_PREFIXES):
+            nq = {0: 7, 1: 4}.get(int(model.jnt_type[j]), 1)
+            nv = {0: 6, 1: 3}.get(int(model.jnt_type[j]), 1)
+            q += list(range(1 + int(model.jnt_qposadr[j]), 1 + int(model.jnt_qposadr[j]) + nq))
+            v += list(range(1 + model.nq + int(model.jnt_dofadr[j]), 1 + model.nq + int(model.jnt_dofadr[j]) + nv))
+    return np.asarray(q, np.int64), np.asarray(v, np.int64)
+
+
 def _set_state(env, state: np.ndarray) -> None:
     """Restore a flat robosuite state and update the kinematics (no physics step)."""
     import mujoco
@@ -242,6 +257,7 @@ def _stage_square_demos(work: Path, files: SquareDemoFiles, fp: str, episodes: S
         env = SquareEnv(env_meta=_env_meta(files.hdf5), image_size=None)
         try:
             robot = _robot_bodies(env.model)
+            robot_q, robot_v = _robot_state_indices(env.model)
             table_z = float(env.rs.table_offset[2])
             rows, files_out = [], []
             with ReplayBuffer.open(files.zarr) as buf:
@@ -267,8 +283,13 @@ def _stage_square_demos(work: Path, files: SquareDemoFiles, fp: str, episodes: S
                         pickle.dump(scene_sdf(env.model, env.data, exclude_bodies=robot), fh)
                     row["sdf"] = name
                     files_out.append(name)
-                np.save(out / f"state0_{e:05d}.npy", states[0])
-                files_out.append(f"state0_{e:05d}.npy")
+                # the reference state of the embodiment check and the gt render: objects as they lie at the splice
+                # frame (the nut spawns above the table and settles), the arm as at the demo's start
+                ref = states[s if s is not None else 0].copy()
+                ref[robot_q] = states[0][robot_q]
+                ref[robot_v] = 0.0
+                np.save(out / f"state_ref_{e:05d}.npy", ref)
+                files_out.append(f"state_ref_{e:05d}.npy")
                 rows.append(row)
             _set_state(env, _demo_states(files.hdf5, episodes[0])[0])
             sph = panda_gripper_spheres(env)
@@ -282,7 +303,7 @@ def _stage_square_demos(work: Path, files: SquareDemoFiles, fp: str, episodes: S
                 {"demos": len(rows), "with_splice": n_ok, "gripper_spheres": len(sph)})
 
     return run_stage("square_demos", work, {"episodes": list(map(int, episodes)), "spheres": N_GRIPPER_SPHERES,
-                                            "pad_m": SPHERE_PAD_M}, {"demos": fp}, fn, version=1)
+                                            "pad_m": SPHERE_PAD_M}, {"demos": fp}, fn, version=2)
 
 
 # ---------------------------------------------------------------------------------------------------- handles
@@ -292,7 +313,7 @@ class _SquareDemoAssets(SessionAssets):
 
     sdf_path: str = ""
     T_world_nut: np.ndarray = field(default_factory=lambda: np.eye(4))
-    state0: np.ndarray | None = None
+    state_ref: np.ndarray | None = None
     square: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -334,7 +355,7 @@ class _SquareDemoAssets(SessionAssets):
 
         env = _process_env(self.square["env_meta"])
         cfg = FeasibilityConfig(**self.square.get("feasibility", {}))
-        res = check_panda_path(env, self.state0, np.asarray(episode.T_world_cam), np.asarray(episode.gripper_width),
+        res = check_panda_path(env, self.state_ref, np.asarray(episode.T_world_cam), np.asarray(episode.gripper_width),
                                upto=int(episode.splice_index), cfg=cfg)
         return None if res.ok else str(res.reason)
 
@@ -374,7 +395,7 @@ class SquareAssets(SessionAssets):
                               {**self.paths, "sdf": str(sd / row["sdf"]) if row["sdf"] else ""}, self.stages,
                               sdf_path=str(sd / row["sdf"]) if row["sdf"] else "",
                               T_world_nut=np.asarray(row["T_world_nut"]),
-                              state0=np.load(sd / f"state0_{int(demo_index):05d}.npy"), square=self.square)
+                              state_ref=np.load(sd / f"state_ref_{int(demo_index):05d}.npy"), square=self.square)
         h._lazy = _PROCESS_CACHE.setdefault(config_hash(h.cache_id, int(demo_index)), {})
         return h
 
@@ -413,7 +434,7 @@ def prepare_square(demos_dir: str | os.PathLike, work_dir: str | os.PathLike, cf
         meta = json.loads(sd.path("demos").read_text())
         rows = {int(r["episode"]): r for r in meta["demos"]}
         scene_cfg = SquareSceneConfig(**{"image_size": cfg.image_size, **inp.scene})
-        state0 = np.load(sd.dir / f"state0_{episodes[0]:05d}.npy")
+        state0 = np.load(sd.dir / f"state_ref_{episodes[0]:05d}.npy")
         scene = build_square_scene(work / "square_scene", env_meta, state0, scene_cfg, progress=progress)
     except UmiAugError as exc:
         raise AugmentError(f"{files.root}: stage failed: {exc}") from exc
@@ -497,11 +518,11 @@ def gt_render_function(assets: SquareAssets):
         h = assets.for_demo(int(info["source"]))
         s = int(info["n_new"])
         T, w = np.asarray(info["T_world_cam"])[:s], np.asarray(info["gripper_width"])[:s]
-        res = check_panda_path(env, h.state0, T, w, upto=s, cfg=fcfg)
+        res = check_panda_path(env, h.state_ref, T, w, upto=s, cfg=fcfg)
         if not res.ok:
             raise AugmentError(f"gt_render: episode {episode} (demo {info['source']}): the Panda cannot follow its "
                                f"path ({res.reason}); it passed when planned — another feasibility config?")
-        return render_gt_frames(env, h.state0, res.q, w, T, np.arange(s))
+        return render_gt_frames(env, h.state_ref, res.q, w, T, np.arange(s))
 
     render_new.close = env.close  # type: ignore[attr-defined]
     return render_new

@@ -1,0 +1,55 @@
+"""The square study (issue #15): data generation → training → evaluation → report, resumable.
+
+    python eval/square_study.py recipe=cpu                     # configs/square_study/cpu.yaml, every step
+    python eval/square_study.py recipe=cpu budget_min=150      # a time slice: no new step after 150 minutes
+    python eval/square_study.py recipe=cpu phases=report       # only rewrite docs/square_study.{md,png}
+    python eval/square_study.py recipe=paper                   # the paper-scale recipe (GPU machine)
+
+Any recipe field can be overridden as ``key=value`` (``umi_aug.eval.square_study.StudyConfig``); ``phases`` is a
+comma list of data, train, eval, report. Rerunning the same command skips finished steps (``study_state.json``).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def main(argv: list[str]) -> int:
+    from umi_aug.errors import UmiAugError
+    from umi_aug.eval.square_study import load_recipe, run_study
+    from umi_aug.runtime import configure_threads
+
+    recipe, phases, rest = "cpu", "data,train,eval,report", []
+    for a in argv:
+        if a.startswith("recipe="):
+            recipe = a.split("=", 1)[1]
+        elif a.startswith("phases="):
+            phases = a.split("=", 1)[1]
+        elif a in ("-h", "--help"):
+            print(__doc__)
+            return 0
+        else:
+            rest.append(a)
+    path = Path(recipe) if recipe.endswith(".yaml") else ROOT / "configs" / "square_study" / f"{recipe}.yaml"
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("umi_aug").setLevel(logging.INFO)
+    try:
+        cfg = load_recipe(path, rest)
+        configure_threads(None)
+        bad = [p for p in phases.split(",") if p not in ("data", "train", "eval", "report")]
+        if bad:
+            print(f"square_study: phases {bad} unknown; expected data, train, eval, report", file=sys.stderr)
+            return 2
+        run_study(cfg, tuple(phases.split(",")))
+    except UmiAugError as exc:
+        print(f"square_study: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
