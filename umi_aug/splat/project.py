@@ -16,13 +16,18 @@ Culling (a culled Gaussian gets exactly zero gradient, never NaN): centre inside
 circle); near-singular ``Sigma_2D``; opacity below the alpha threshold (no pixel can reach it); opacity-aware
 bounding box (``d^T Sigma^-1 d <= 2 ln(255 o)``) outside the image.
 
-This module is the projection of the training path (autograd provides its backward); the inference path runs the
-same formulas in numba (:func:`umi_aug.splat._kernels.project_kernel`), the reference renderer in
-:mod:`umi_aug.splat._torch_impl` uses an autograd Jacobian instead of the analytic one.
+Two implementations with the same outputs: :func:`project_gaussians` with ``fast=False`` is the torch-autograd
+reference (differentiable w.r.t. the pose too); ``fast=True`` runs :class:`ProjectGaussians`, a
+``torch.autograd.Function`` with a numba forward and a hand-written numba backward
+(:mod:`umi_aug.splat._project_kernels`, float64 inside; no pose gradient, so a pose that requires grad falls back
+to the reference). The inference path runs the same formulas in numba
+(:func:`umi_aug.splat._kernels.project_kernel`); the reference renderer in :mod:`umi_aug.splat._torch_impl` uses
+an autograd Jacobian instead of the analytic one.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +37,7 @@ from umi_aug.camera import kb_torch
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import SplatError
 from umi_aug.geometry.se3_torch import quat_wxyz_to_matrix
+from umi_aug.splat import _project_kernels as PK
 from umi_aug.splat._constants import (
     ALPHA_THRESHOLD,
     BBOX_MARGIN_PX,
@@ -47,7 +53,7 @@ from umi_aug.splat._constants import (
 from umi_aug.splat.gaussians import Gaussians
 from umi_aug.splat.sh import eval_sh, view_directions
 
-__all__ = ["Projected", "project_gaussians", "camera_from_pose", "check_filter"]
+__all__ = ["Projected", "ProjectGaussians", "project_gaussians", "camera_from_pose", "check_filter"]
 
 Tensor = torch.Tensor
 
@@ -125,6 +131,9 @@ def project_gaussians(
     filter: str = "inria",
     near: float = DEFAULT_NEAR,
     far: float = DEFAULT_FAR,
+    *,
+    fast: bool = False,
+    timings: dict[str, float] | None = None,
 ) -> Projected:
     """Project, cull and shade the Gaussians (differentiable w.r.t. every Gaussian parameter and the pose).
 
@@ -135,6 +144,9 @@ def project_gaussians(
         sh_degree: SH degree to evaluate (default and maximum: the scene's).
         filter: ``"inria"`` | ``"mip"`` | ``"none"`` (see module docstring).
         near, far: culling sphere radii around the camera centre, metres.
+        fast: numba forward + hand-written backward (:class:`ProjectGaussians`) unless the pose requires grad;
+            False: the torch-autograd reference.
+        timings: with ``fast``, ``timings["project_backward"]`` receives the backward's seconds.
 
     Returns:
         :class:`Projected` for the visible Gaussians.
@@ -143,6 +155,8 @@ def project_gaussians(
     g = gaussians
     deg = g.sh_degree if sh_degree is None else min(int(sh_degree), g.sh_degree)
     dt = g.dtype
+    if fast and not torch.as_tensor(T_world_cam).requires_grad and dt in (torch.float32, torch.float64):
+        return _project_fast(g, T_world_cam, intr, deg, dilation, compensate, near, far, timings)
     R_cw, t_cw, campos = camera_from_pose(T_world_cam, dt)
 
     # cheap detached pre-cull (near/far sphere, ray angle) so the differentiable part only sees safe inputs
@@ -204,3 +218,81 @@ def project_gaussians(
         depths=kp(depth),
         cov2d=kp(torch.stack([sxx, sxy, syy], dim=-1)),
     )
+
+
+@dataclass
+class _Setup:
+    """Camera and settings of one :class:`ProjectGaussians` call (float64 numpy)."""
+
+    R_cw: np.ndarray  # [3, 3]
+    t_cw: np.ndarray  # [3]
+    campos: np.ndarray  # [3] camera centre, world
+    cam: np.ndarray  # [9] fx, fy, cx, cy, k1..k4, theta_max
+    sh_degree: int
+    near: float
+    far: float
+    dilation: float
+    compensate: bool
+    theta_slack: float
+    width: int
+    height: int
+    timings: dict[str, float] | None
+
+
+def _np(t: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy())
+
+
+class ProjectGaussians(torch.autograd.Function):
+    """:func:`project_gaussians` as numba kernels: ``forward(means, log_scales, quats_wxyz, logit_opacities, sh0,
+    sh_rest, setup)`` returns ``(out [V, 13], ids [V])`` with the columns of
+    :mod:`umi_aug.splat._project_kernels` in the scene's dtype (computed in float64); the backward recomputes the
+    visible Gaussians and writes the gradients of all six parameters (zero for culled rows)."""
+
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, logit_op, sh0, sh_rest, setup: _Setup):
+        arrs = [_np(t) for t in (means, log_scales, quats, logit_op, sh0, sh_rest)]
+        n = arrs[0].shape[0]
+        out = np.empty((n, PK.PROJ_COLS), dtype=np.float64)
+        valid = np.empty(n, dtype=np.bool_)
+        PK.project_fwd_kernel(
+            *arrs, setup.sh_degree, setup.R_cw, setup.t_cw, setup.campos, setup.cam, setup.near, setup.far,
+            setup.dilation, setup.compensate, setup.theta_slack, setup.width, setup.height, out, valid,
+        )
+        ids = np.flatnonzero(valid)
+        ctx.save_for_backward(means, log_scales, quats, logit_op, sh0, sh_rest)
+        ctx.setup, ctx.ids = setup, ids
+        ids_t = torch.from_numpy(ids)
+        ctx.mark_non_differentiable(ids_t)
+        return torch.from_numpy(out[ids]).to(means.dtype), ids_t
+
+    @staticmethod
+    def backward(ctx, g_out, _g_ids):
+        t0 = time.perf_counter()
+        su = ctx.setup
+        tensors = ctx.saved_tensors
+        arrs = [_np(t) for t in tensors]
+        grads = [np.zeros(a.shape, dtype=a.dtype) for a in arrs]
+        if g_out is not None and ctx.ids.size:
+            PK.project_bwd_kernel(
+                ctx.ids, *arrs, su.sh_degree, su.R_cw, su.t_cw, su.campos, su.cam, su.dilation, su.compensate,
+                _np(g_out.to(torch.float64)), *grads,
+            )
+        if su.timings is not None:
+            su.timings["project_backward"] = su.timings.get("project_backward", 0.0) + time.perf_counter() - t0
+        return (*(torch.from_numpy(x) for x in grads), None)
+
+
+def _project_fast(g: Gaussians, T_world_cam, intr: FisheyeIntrinsics, deg: int, dilation: float, compensate: bool,
+                  near: float, far: float, timings: dict[str, float] | None) -> Projected:
+    """:class:`Projected` from :class:`ProjectGaussians` (the fast path of :func:`project_gaussians`)."""
+    R_cw, t_cw, campos = (x.detach().numpy() for x in camera_from_pose(torch.as_tensor(T_world_cam).detach(),
+                                                                         torch.float64))
+    cam = np.array([intr.fx, intr.fy, intr.cx, intr.cy, *intr.k, intr.theta_max], dtype=np.float64)
+    setup = _Setup(np.ascontiguousarray(R_cw), np.ascontiguousarray(t_cw), np.ascontiguousarray(campos), cam,
+                   int(deg), float(near), float(far), float(dilation), bool(compensate),
+                   kb_torch._theta_slack(g.dtype), intr.width, intr.height, timings)
+    out, ids = ProjectGaussians.apply(g.means, g.log_scales, g.quats_wxyz, g.logit_opacities, g.sh0, g.sh_rest,
+                                      setup)
+    return Projected(ids=ids, means2d=out[:, 0:2], conics=out[:, 2:5], opacities=out[:, 5], colors=out[:, 6:9],
+                     depths=out[:, 9], cov2d=out[:, 10:13])

@@ -1,6 +1,7 @@
 """CPU fisheye Gaussian splatting: :func:`render` (fast numba path) and the rasteriser autograd function.
 
-Pipeline (gsplat's split): projection (numba for inference, torch autograd when gradients are needed) ->
+Pipeline (gsplat's split): projection (numba for inference; with gradients the numba
+:class:`umi_aug.splat.project.ProjectGaussians` with its hand-written backward, or the torch-autograd reference) ->
 binning (depth sort of the visible Gaussians by ray distance, stable counting sort into 16x16 tiles, exact
 ellipse/tile test) -> rasterisation (numba, parallel over tiles; hand-written backward that replays each pixel
 from its last contributor using the stored final transmittance) exposed as :class:`RasterizeGaussians`
@@ -233,6 +234,7 @@ class RasterizeGaussians(torch.autograd.Function):
         ctx.packed, ctx.binning, ctx.uv64 = packed, binning, uv64
         ctx.grad_dtype = means2d.dtype
         ctx.final_T, ctx.last = out["T"].copy(), out["last"]  # the returned T may be modified by the caller
+        ctx.timings = stats.get("timings") if stats is not None else None
         if stats is not None:
             stats["n_isects"] = binning.n_isects
             stats["n_evals"] = int(out["evals"].sum())
@@ -242,6 +244,7 @@ class RasterizeGaussians(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_T):
+        t0 = time.perf_counter()
         zeros = lambda shape: np.zeros(shape, dtype=ctx.packed.dtype)  # noqa: E731
         H, W = ctx.binning.height, ctx.binning.width
         g_rgb = zeros((H, W, 3)) if g_rgb is None else g_rgb.detach().cpu().numpy()
@@ -251,6 +254,8 @@ class RasterizeGaussians(torch.autograd.Function):
             ctx.packed, ctx.binning, ctx.final_T, ctx.last, g_rgb, g_depth, g_T, ctx.uv64
         )
         gt = torch.from_numpy(grad).to(ctx.grad_dtype)
+        if ctx.timings is not None:
+            ctx.timings["raster_backward"] = ctx.timings.get("raster_backward", 0.0) + time.perf_counter() - t0
         return gt[:, 0:2], gt[:, 2:5], gt[:, 5], gt[:, 6:9], gt[:, 9], None, None, None
 
 
@@ -338,9 +343,11 @@ def render(
     """Render a fisheye image of ``gaussians`` from ``T_world_cam`` (CPU, numba).
 
     Differentiable with respect to every Gaussian parameter (and the pose and background if they require
-    grad) whenever autograd is on and something requires grad: the projection then runs in torch autograd and
-    the rasteriser as :class:`RasterizeGaussians`. Otherwise (``projection="auto"``) the projection runs in
-    numba too. The working dtype is the scene's (float32: fast path; float64: used by the tests).
+    grad) whenever autograd is on and something requires grad: the projection then runs as
+    :class:`umi_aug.splat.project.ProjectGaussians` (numba forward and backward; the torch-autograd reference
+    when the pose requires grad or ``projection="torch"``) and the rasteriser as :class:`RasterizeGaussians`.
+    Otherwise (``projection="auto"``) the numba inference projection runs. The working dtype is the scene's
+    (float32: fast path; float64: used by the tests).
 
     Args:
         gaussians: the scene.
@@ -352,7 +359,8 @@ def render(
             ``"none"``.
         near, far: Gaussians whose centre is closer than ``near`` or farther than ``far`` (metres, along the
             ray) are culled.
-        projection: ``"auto"``, or force ``"numba"`` (no gradients) / ``"torch"``.
+        projection: ``"auto"``, or force ``"numba"`` (the inference projection, no gradients) / ``"torch"`` (the
+            torch-autograd reference projection).
 
     Returns:
         :class:`RenderOutput`.
@@ -383,9 +391,10 @@ def render(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if use_torch:
-        proj = project_gaussians(gaussians, pose_t, intr, deg, filter, near, far)
+        proj = project_gaussians(gaussians, pose_t, intr, deg, filter, near, far, fast=projection == "auto",
+                                 timings=timings)
         timings["project"] = time.perf_counter() - t0
-        stats: dict[str, Any] = {}
+        stats: dict[str, Any] = {"timings": timings}  # the backward adds timings["raster_backward"] (seconds)
         rgb_acc, depth_acc, T = RasterizeGaussians.apply(
             proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, W, H, stats
         )

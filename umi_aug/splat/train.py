@@ -1,7 +1,8 @@
 """Fisheye 3DGS trainer on the CPU (paper §3.1 "Fisheye 3D Gaussians"; issue #4 item 4).
 
-Per step: one training view (shuffled epochs), :func:`umi_aug.splat.render` with gradients (KB EWA projection in
-torch autograd, numba rasteriser with its hand-written backward), the masked ``(1 - w) L1 + w D-SSIM`` loss
+Per step: one training view (shuffled epochs), :func:`umi_aug.splat.render` with gradients (KB EWA projection and
+numba rasteriser, both numba with hand-written backwards; ``fast_projection=False`` runs the torch-autograd
+reference projection instead), the masked ``(1 - w) L1 + w D-SSIM`` loss
 (:mod:`umi_aug.splat.losses`; gripper/mirror pixels and pixels outside the image circle excluded), opacity and
 scale regularisers, Adam (:mod:`umi_aug.splat.optim`), then 3DGS-MCMC position noise and, every
 ``refine_every`` steps, relocation of dead Gaussians and growth up to the budget ``max_gaussians``
@@ -47,9 +48,13 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "checkpoint.pt"
+#: Accumulated seconds in ``SplatTrainResult.timings``: the step's stages (render, loss, backward, step, densify)
+#: and, inside them, the projection / rasteriser forward (render) and backward (backward).
+TIMING_KEYS = ("render", "loss", "backward", "step", "densify", "project", "raster", "project_backward",
+               "raster_backward")
 CHECKPOINT_VERSION = 1
 #: Config fields that may change between a checkpoint and a resumed run.
-RESUMABLE_CHANGES = frozenset({"iterations", "eval_every", "checkpoint_every", "sheet_views"})
+RESUMABLE_CHANGES = frozenset({"iterations", "eval_every", "checkpoint_every", "sheet_views", "fast_projection"})
 
 
 @dataclass(frozen=True)
@@ -77,6 +82,9 @@ class SplatTrainConfig:
         eval_every: evaluate held-out and (up to ``train_eval_views``) training views every n steps (and at the end).
         checkpoint_every: write ``checkpoint.pt`` every n steps (and at the end).
         sheet_views: held-out views in the contact sheet.
+        fast_projection: numba projection with its hand-written backward
+            (:class:`umi_aug.splat.project.ProjectGaussians`); False: the torch-autograd reference (same results
+            up to rounding, slower).
     """
 
     iterations: int = 3000
@@ -109,6 +117,7 @@ class SplatTrainConfig:
     train_eval_views: int = 8
     checkpoint_every: int = 500
     sheet_views: int = 4
+    fast_projection: bool = True
 
     def check(self) -> None:
         """Raise :class:`SplatError` naming the first invalid field."""
@@ -168,8 +177,9 @@ class SplatTrainResult:
         gaussians: the trained scene (float32, detached).
         out_dir, ply_path: output folder and ``out_dir/scene.ply`` (None without ``out_dir``).
         heldout_psnr, heldout_ssim: final masked metrics over the held-out views (nan if none held out).
-        history: one dict per evaluation: iteration, seconds (training time, evaluation excluded),
-            wall_seconds, n_gaussians, loss, train_psnr, train_ssim, heldout_psnr, heldout_ssim.
+        history: one dict per evaluation: iteration, seconds (training time, evaluation excluded), cpu_seconds
+            (the process's CPU time over the same steps, all threads), wall_seconds, n_gaussians, loss,
+            train_psnr, train_ssim, heldout_psnr, heldout_ssim.
     """
 
     gaussians: Gaussians
@@ -377,6 +387,7 @@ def train_splat(
         rng.bit_generator.state = ck["np_rng"]
         start, order, pos = int(ck["iteration"]), list(ck["order"]), int(ck["order_pos"])
         history, seconds, timings = list(ck["history"]), float(ck["seconds"]), dict(ck["timings"])
+        cpu_seconds = float(ck.get("cpu_seconds", 0.0))
         loss_sum, loss_n = float(ck["loss_acc"][0]), int(ck["loss_acc"][1])
         log.info("resuming %s at iteration %d (%d Gaussians)", out, start, params["means"].shape[0])
     else:
@@ -386,9 +397,9 @@ def train_splat(
             g0 = g0.select(keep)
         params = {k: v.detach().clone().requires_grad_(True) for k, v in g0.tensors().items()}
         opt = GaussianAdam(params)
-        start, order, pos, history, seconds = 0, [], 0, [], 0.0
+        start, order, pos, history, seconds, cpu_seconds = 0, [], 0, [], 0.0, 0.0
         loss_sum, loss_n = 0.0, 0
-        timings = {k: 0.0 for k in ("render", "loss", "backward", "step", "densify", "project", "raster")}
+        timings = {k: 0.0 for k in TIMING_KEYS}
 
     def deg_at(step: int) -> int:
         return min(cfg.sh_degree, step // cfg.sh_increase_every)
@@ -404,7 +415,8 @@ def train_splat(
             "version": CHECKPOINT_VERSION, "iteration": it, "cfg": _cfg_dict(cfg), "views": data.names,
             "params": {k: v.detach().clone() for k, v in params.items()}, "opt": opt.state_dict(),
             "torch_gen": gen.get_state(), "np_rng": rng.bit_generator.state, "order": order, "order_pos": pos,
-            "history": history, "seconds": seconds, "timings": timings, "scene_scale": scale,
+            "history": history, "seconds": seconds, "cpu_seconds": cpu_seconds, "timings": timings,
+            "scene_scale": scale,
             "loss_acc": (loss_sum, loss_n),
         })
 
@@ -413,7 +425,8 @@ def train_splat(
         deg = deg_at(it)
         tp, ts = _evaluate(g, data, train_eval_idx, intr, cfg, deg)
         hp, hs = _evaluate(g, data, held_idx, intr, cfg, deg)
-        rec = {"iteration": it, "seconds": seconds, "wall_seconds": time.perf_counter() - t_wall0 + wall_offset,
+        rec = {"iteration": it, "seconds": seconds, "cpu_seconds": cpu_seconds,
+               "wall_seconds": time.perf_counter() - t_wall0 + wall_offset,
                "n_gaussians": g.n, "loss": loss_avg, "train_psnr": tp, "train_ssim": ts,
                "heldout_psnr": hp, "heldout_ssim": hs}
         log.info("it %d: %d Gaussians, held-out %.2f dB / %.4f, train %.2f dB (%.0f s)", it, g.n, hp, hs, tp, seconds)
@@ -433,6 +446,7 @@ def train_splat(
     try:
         for it in range(start + 1, end + 1):
             t0 = time.perf_counter()
+            c0 = time.process_time()
             if pos >= len(order):
                 order, pos = [int(i) for i in rng.permutation(train_idx)], 0
             i = order[pos]
@@ -440,7 +454,8 @@ def train_splat(
             g = Gaussians(**params)
             from umi_aug.splat.renderer import render
 
-            r = render(g, data.poses[i], intr, bg, deg_at(it), filter=cfg.filter)
+            r = render(g, data.poses[i], intr, bg, deg_at(it), filter=cfg.filter,
+                       projection="auto" if cfg.fast_projection else "torch")
             t1 = time.perf_counter()
             loss, _parts = photometric_loss(r.rgb, data.images[i], data.masks[i], cfg.ssim_weight)
             if cfg.opacity_reg > 0:
@@ -460,11 +475,12 @@ def train_splat(
                 grow(params, opt, gen, cfg.max_gaussians, cfg.growth_factor, cfg.min_opacity)
             t5 = time.perf_counter()
             seconds += t5 - t0
+            cpu_seconds += time.process_time() - c0
             for k, dt in (("render", t1 - t0), ("loss", t2 - t1), ("backward", t3 - t2), ("step", t4 - t3),
                           ("densify", t5 - t4)):
                 timings[k] += dt
-            timings["project"] += r.meta["timings"].get("project", 0.0)
-            timings["raster"] += r.meta["timings"].get("raster", 0.0)
+            for k in ("project", "raster", "project_backward", "raster_backward"):
+                timings[k] = timings.get(k, 0.0) + r.meta["timings"].get(k, 0.0)
             lv = float(loss.detach())
             if not math.isfinite(lv):
                 raise SplatError(f"train_splat: loss became {lv} at iteration {it} (view {data.names[i]!r}); "
