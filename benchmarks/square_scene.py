@@ -144,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gaussians", type=int, default=12000)
     ap.add_argument("--nut-iterations", type=int, default=800)
     ap.add_argument("--nut-gaussians", type=int, default=3000)
+    ap.add_argument("--nut-size", type=int, default=None, help="orbit image size (default: density-matched)")
+    ap.add_argument("--nut-oversample", type=float, default=1.0)
     ap.add_argument("--timing-rounds", type=int, default=5)
     ap.add_argument("--picture", type=Path, default=None)
     ap.add_argument("--picture-rows", type=int, default=4)
@@ -165,7 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"load average at start: {' '.join(load0)}", flush=True)
     cfg = SquareSceneConfig(image_size=a.size, n_scan_views=a.scan_views, static_iterations=a.iterations,
                             static_max_gaussians=a.gaussians, nut_iterations=a.nut_iterations,
-                            nut_max_gaussians=a.nut_gaussians, seed=a.seed)
+                            nut_max_gaussians=a.nut_gaussians, nut_image_size=a.nut_size,
+                            nut_oversample=a.nut_oversample, seed=a.seed)
     env = SquareEnv(image_size=None)
     model = env.model
     states = _states(env, a.shards, a.demos + 1)
@@ -182,12 +185,17 @@ def main(argv: list[str] | None = None) -> int:
     nut_geoms = set(range(model.ngeom)) - set(hidden_geom_ids(model, "nut").tolist())
     frames = []
     times = {"composed": [], "per_demo": []}
+    demo_rows = []
     with ScanRenderer(model, "scene", intr) as gt_r:
         valid = gt_r.renderer.valid_mask
         for d, (s, pd) in enumerate(zip(states[1:], per_demo)):
             poses = eval_poses(model, s, a.poses, a.seed + 1000 + d)
             gt = gt_r.render(s, poses)
             T_nut = body_pose(model, data_at_state(model, s))
+            dR = scene.T_world_nut_ref[:3, :3].T @ T_nut[:3, :3]
+            demo_rows.append({"demo": d + 1, "nut_offset_m": float(np.linalg.norm(T_nut[:3, 3] -
+                                                                                   scene.T_world_nut_ref[:3, 3])),
+                              "nut_yaw_vs_reference_deg": float(np.degrees(np.arctan2(dR[1, 0], dR[0, 0])))})
             static, placed = scene_parts(scene, T_nut)
             g_demo = read_ply(pd.ply)
             for i, T in enumerate(poses):
@@ -226,7 +234,13 @@ def main(argv: list[str] | None = None) -> int:
         "build_wall_s_this_run": build_wall,
     }
     load1 = open("/proc/loadavg").read().split()[:3]
+    for row in demo_rows:
+        row["composed_nut_psnr_median"] = _stats([r["composed"]["nut_psnr"] for r in recs if r["demo"] == row["demo"]])[
+            "median"]
+        row["per_demo_nut_psnr_median"] = _stats([r["per_demo"]["nut_psnr"] for r in recs if r["demo"] == row["demo"]])[
+            "median"]
     out = {"config": {**cfg.__dict__, "demos": a.demos, "poses": a.poses}, "summary": summary, "cost": cost,
+           "demos": demo_rows,
            "heldout": {"static": rep["static"], "nut": rep["nut"], "per_demo": [p.report for p in per_demo]},
            "frames": recs, "loadavg_start": load0, "loadavg_end": load1,
            "command": " ".join(["python", "benchmarks/square_scene.py", *(argv if argv is not None else sys.argv[1:])])}
@@ -247,6 +261,10 @@ def main(argv: list[str] | None = None) -> int:
     held = ", ".join(f"{p.report['heldout_psnr']:.2f}" for p in per_demo)
     print(f"held-out PSNR: static {rep['static']['heldout_psnr']:.2f}, nut {rep['nut']['heldout_psnr']:.2f}, per-demo "
           f"{held}")
+    for row in demo_rows:
+        print(f"demo {row['demo']}: nut {100 * row['nut_offset_m']:.1f} cm / "
+              f"{row['nut_yaw_vs_reference_deg']:+.0f} deg from the reference; nut PSNR composed {row['composed_nut_psnr_median']:.2f}, per-demo "
+              f"{row['per_demo_nut_psnr_median']:.2f}")
     print(f"load average: start {' '.join(load0)}, end {' '.join(load1)}")
     if a.picture is not None:
         pick = np.linspace(0, len(frames) - 1, min(a.picture_rows, len(frames))).round().astype(int)
