@@ -14,14 +14,22 @@ disk). Its samples ``0 .. n_original-1`` are the original samples, unchanged; th
 
 Low-dim observations and actions use exactly UMI's sampling and representation code of :mod:`.dataset`, so an
 augmented sample equals the sample the offline export (``umi-aug augment``) gives for the same episode and step
-(images up to the export's JPEG-XL compression). DataLoader workers each keep their own caches and open the
-session's files lazily; nothing is shared between processes.
+(images up to the export's JPEG-XL compression). DataLoader workers each keep their own in-memory caches and open
+the session's files lazily (once per process: with persistent workers, once per run).
+
+Fast paths (``fast_paths``, default all of :data:`~umi_aug.policy.augmented_paths.FAST_PATHS`; ``()`` is the
+reference, kept; both give the same samples): a plan cache on disk shared by epochs, workers and runs, and a frame
+path that decodes only the original frames a sample needs (:mod:`umi_aug.policy.augmented_paths`).
+
+The epoch lives in a shared-memory tensor, so :meth:`AugmentedUmiDataset.set_epoch` in the main process reaches
+persistent DataLoader workers (forked or spawned) before the next epoch's first index is sent to them.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
+import time
 from collections import OrderedDict
 from typing import Any, Sequence
 
@@ -30,6 +38,7 @@ import torch
 
 from umi_aug.errors import PolicyError
 from umi_aug.policy.dataset import UmiPolicyDataset, lowdim_from_rows, sample_frame_indices, to_sample, window_rows
+from umi_aug.policy.augmented_paths import FAST_PATHS, PlanDiskCache, sample_frames
 from umi_aug.policy.normalizer import LinearNormalizer
 
 __all__ = ["AugmentedUmiDataset", "AugmentedSlot"]
@@ -66,6 +75,9 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         n_aug_per_demo: augmentation ids ``0..n-1`` per demo (distinct start poses / obstacles).
         seed: root seed of the slot draws (the episodes themselves follow ``assets.cfg.seed``).
         plan_cache_size: planned episodes kept per process (LRU).
+        fast_paths: ``"plan_disk_cache"`` and/or ``"frames"`` (see :mod:`umi_aug.policy.augmented_paths`); ``()``
+            = the reference paths (plan in every process and epoch, :func:`umi_aug.augment.render_episode_frames`).
+        plan_cache_dir: folder of the on-disk plan cache (default ``<assets.work_dir>/plans``).
 
     Raises:
         PolicyError: bad ratio/modes, image size or camera count that does not match the session, or no training
@@ -74,7 +86,8 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
 
     def __init__(self, original: UmiPolicyDataset, assets: Any, modes: Sequence[str] = ("freespace",),
                  ratio: float = 0.5, n_aug_per_demo: int = 1000, seed: int = 0,
-                 plan_cache_size: int = DEFAULT_PLAN_CACHE) -> None:
+                 plan_cache_size: int = DEFAULT_PLAN_CACHE, fast_paths: Sequence[str] = FAST_PATHS,
+                 plan_cache_dir: str | None = None) -> None:
         if not 0.0 <= ratio < 1.0:
             raise PolicyError(f"aug.ratio = {ratio!r}: expected a fraction in [0, 1)")
         if n_aug_per_demo < 1:
@@ -82,6 +95,9 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         bad = [m for m in modes if m not in ("freespace", "obstacle")]
         if not modes or bad:
             raise PolicyError(f"augmentation modes {list(modes)!r}: expected 'freespace' and/or 'obstacle'")
+        unknown = sorted(set(fast_paths) - set(FAST_PATHS))
+        if unknown:
+            raise PolicyError(f"AugmentedUmiDataset: fast_paths {unknown} unknown (have {list(FAST_PATHS)})")
         t = original.task
         if t.n_robots != 1 or t.n_cameras != 1:
             raise PolicyError(f"aug: on-the-fly augmentation supports one arm and one camera (task has "
@@ -95,8 +111,11 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         self.ratio = float(ratio)
         self.n_aug_per_demo = int(n_aug_per_demo)
         self.seed = int(seed)
-        self.epoch = 0
+        self._epoch = torch.zeros((), dtype=torch.int64).share_memory_()
         self.plan_cache_size = int(plan_cache_size)
+        self.fast_paths = tuple(fast_paths)
+        self.plan_disk = (PlanDiskCache(plan_cache_dir or (assets.work_dir / "plans"))
+                          if "plan_disk_cache" in self.fast_paths else None)
         train_eps = np.flatnonzero(~original.val_mask) if original.split == "train" else np.arange(len(original.val_mask))
         self.demos = [int(d) for d in assets.augmentable if d in set(train_eps.tolist())]
         if not self.demos and ratio > 0:
@@ -106,20 +125,34 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         self.n_augmented = int(round(n * ratio / (1.0 - ratio))) if self.demos else 0
         self.shape_meta = original.shape_meta
         self._plans: OrderedDict = OrderedDict()
-        self.stats = {"plans": 0, "plan_hits": 0, "plan_failures": 0, "frames_rendered": 0}
+        self.stats = {"plans": 0, "plan_hits": 0, "plans_solved": 0, "plan_disk_hits": 0, "plan_failures": 0,
+                      "frames_rendered": 0}
+        #: seconds spent per part of the augmented samples in this process (plan / decode / render / overlay /
+        #: lowdim / to_tensor): the benchmark's time split
+        self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------------ bookkeeping
     def __len__(self) -> int:
         return len(self.original) + self.n_augmented
 
+    @property
+    def epoch(self) -> int:
+        return int(self._epoch)
+
     def set_epoch(self, epoch: int) -> None:
-        """Draw a new set of augmented slots (same seed + epoch → same slots)."""
-        self.epoch = int(epoch)
+        """Draw a new set of augmented slots (same seed + epoch → same slots); seen by persistent workers too."""
+        self._epoch.fill_(int(epoch))
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_plans"] = OrderedDict()
+        state["timings"] = {}
         return state
+
+    def _tick(self, part: str, t0: float) -> float:
+        t1 = time.perf_counter()
+        self.timings[part] = self.timings.get(part, 0.0) + t1 - t0
+        return t1
 
     def get_validation_dataset(self) -> UmiPolicyDataset:
         """Validation = the original validation split, never augmented."""
@@ -139,9 +172,22 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             self._plans.move_to_end(key)
             self.stats["plan_hits"] += 1
             return self._plans[key]
-        planned = plan_episode(self.assets.for_demo(key[0]), key[0], key[1], mode)
-        self.stats["plans"] += 1
+        t0 = time.perf_counter()
+        handle = self.assets.for_demo(key[0])
+        found, planned = False, None
+        if handle.demos[key[0]].contact_index is None:  # a lazily built scene group without a splice frame
+            found = True
+        elif self.plan_disk is not None:
+            found, planned = self.plan_disk.load(handle, *key)
+            self.stats["plan_disk_hits"] += found
+        self.stats["plans"] += 1  # episodes not in this process's LRU (solved, or read from the disk cache)
+        if not found:
+            planned = plan_episode(handle, key[0], key[1], mode)
+            self.stats["plans_solved"] += 1
+            if self.plan_disk is not None:
+                self.plan_disk.save(handle, *key, planned)
         self.stats["plan_failures"] += planned is None
+        self._tick("plan", t0)
         self._plans[key] = planned
         while len(self._plans) > self.plan_cache_size:
             self._plans.popitem(last=False)
@@ -179,6 +225,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         if not 0 <= cur < max(1, self.n_current_steps(n)):
             raise PolicyError(f"augmented episode {(demo_index, aug_id, mode)} has {n} frames: step {cur} has no "
                               "full action window")
+        t0 = time.perf_counter()
         pose6, grip, start = self._episode_arrays(planned)
         c = np.array([cur], np.int64)
         low, a_rows = window_rows(t, c, np.zeros(1, np.int64), np.full(1, n, np.int64))
@@ -186,12 +233,21 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
                                   self.original.start_pose_noise if noise_rng is not None else 0.0)
         rgb_rows, _ = sample_frame_indices(cur, 0, n, t.img_obs_horizon, t.obs_down_sample_steps)
         uniq, inv = np.unique(rgb_rows, return_inverse=True)
-        from umi_aug.augment import render_episode_frames
+        t0 = self._tick("lowdim", t0)
+        handle = self.assets.for_demo(planned.demo_index)
+        if "frames" in self.fast_paths:
+            frames = sample_frames(handle, planned, uniq, self.timings)[inv]
+        else:
+            from umi_aug.augment import render_episode_frames
 
-        frames = render_episode_frames(self.assets.for_demo(planned.demo_index), planned, uniq)[inv]
+            frames = render_episode_frames(handle, planned, uniq)[inv]
+            t0 = self._tick("frames", t0)
         self.stats["frames_rendered"] += len(uniq)
         key = self.original.rgb_keys[0]
-        return to_sample({key: frames}, {k: v[0] for k, v in lowdim.items()}, self.original.lowdim_keys)
+        t0 = time.perf_counter()
+        out = to_sample({key: frames}, {k: v[0] for k, v in lowdim.items()}, self.original.lowdim_keys)
+        self._tick("to_tensor", t0)
+        return out
 
     # ------------------------------------------------------------------ torch Dataset
     def __getitem__(self, index: int) -> dict[str, Any]:

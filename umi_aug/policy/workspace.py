@@ -38,7 +38,7 @@ from umi_aug.policy.ema import EMA
 from umi_aug.runtime import configure_threads
 
 __all__ = ["TrainWorkspace", "resolve_dataset_path", "seed_everything", "build_optimizer", "build_lr_scheduler",
-           "iter_jsonl"]
+           "iter_jsonl", "make_loader", "loader_context", "EpochSampler", "worker_init"]
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +69,94 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
     if plain:
         from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset
 
-        log.info("aug=%s: building the scenes of dataset %s from its own frames (cached in %s)", a.name,
+        # lazily: a scene group is built (or read from its cache) by the first process that samples one of its
+        # episodes (the normaliser fit here, then the DataLoader workers), so training starts at once and the
+        # validation episodes' scenes are never built
+        train_eps = tuple(int(e) for e in np.flatnonzero(~train.val_mask)) if train.split == "train" else None
+        log.info("aug=%s: scenes of dataset %s built from its own frames on first use (cached in %s)", a.name,
                  dataset_path, work)
         assets = prepare_dataset(dataset_path, work, acfg, DatasetInput(tcp_offset_m=a.tcp_offset_m,
-                                                                        scene_group=a.scene_group))
+                                                                        scene_group=a.scene_group,
+                                                                        episodes=train_eps),
+                                 lazy=True)
     else:
         log.info("aug=%s: preparing session %s (cached in %s)", a.name, session, work)
         assets = prepare_session(session, work, acfg)
     return AugmentedUmiDataset(train, assets, modes, ratio=a.ratio, n_aug_per_demo=a.n_aug_per_demo, seed=a.seed,
                                plan_cache_size=a.plan_cache_size)
+
+
+def epoch_seed(seed: int, epoch: int) -> int:
+    """Seed of epoch ``epoch``'s shuffle (the DataLoader generator's)."""
+    return int(seed) * 100003 + int(epoch)
+
+
+class EpochSampler(torch.utils.data.Sampler):
+    """The order a fresh ``DataLoader(shuffle=..., generator=Generator().manual_seed(epoch_seed(seed, epoch)))``
+    gives (the loader draws its worker base seed from the generator first, then ``randperm``), for a loader built
+    once: :meth:`set_epoch` selects the epoch, so persistent workers keep running across epochs."""
+
+    def __init__(self, n: int, seed: int, shuffle: bool = True) -> None:
+        self.n, self.seed, self.shuffle, self.epoch = int(n), int(seed), bool(shuffle), 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self):
+        if not self.shuffle:
+            return iter(range(self.n))
+        g = torch.Generator()
+        g.manual_seed(epoch_seed(self.seed, self.epoch))
+        torch.empty((), dtype=torch.int64).random_(generator=g)  # the loader's base-seed draw
+        return iter(torch.randperm(self.n, generator=g).tolist())
+
+
+def worker_init(worker_id: int) -> None:
+    """DataLoader worker start: one thread for torch, numba and OpenCV (the workers are the parallelism)."""
+    torch.set_num_threads(1)
+    try:
+        import numba
+
+        numba.set_num_threads(1)
+    except (ImportError, ValueError):  # pragma: no cover - numba missing / pool not launchable
+        pass
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:  # pragma: no cover
+        pass
+
+
+def loader_context(ds: torch.utils.data.Dataset) -> str | None:
+    """``"spawn"`` for a dataset that renders (numba's parallel kernels): a worker FORKED from a process whose numba
+    thread pool is running deadlocks in its first parallel kernel (measured: the fork variant of
+    tests/policy/test_augmented_dataset_fast.py hung); None (the platform default) otherwise."""
+    from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
+
+    return "spawn" if isinstance(ds, AugmentedUmiDataset) else None
+
+
+def make_loader(ds: torch.utils.data.Dataset, batch_size: int, shuffle: bool, seed: int, epoch: int = 0,
+                num_workers: int = 0, pin_memory: bool = False, persistent: bool = True,
+                context: str | None = None) -> torch.utils.data.DataLoader:
+    """The training/validation DataLoader. ``persistent`` with workers: :class:`EpochSampler` + persistent workers
+    (call ``loader.sampler.set_epoch(e)`` and the dataset's ``set_epoch`` before each epoch); otherwise the
+    reference: a RandomSampler on a generator seeded for ``epoch`` (one loader per epoch). Both give the same index
+    order per epoch. Workers get :func:`worker_init`; ``context``: ``"fork"`` / ``"spawn"`` (None: the default)."""
+    common = dict(batch_size=batch_size, num_workers=num_workers, pin_memory=pin_memory, drop_last=False,
+                  worker_init_fn=worker_init if num_workers > 0 else None,
+                  multiprocessing_context=context if num_workers > 0 else None)
+    g = torch.Generator()  # the workers' base seed comes from it (never from the global torch RNG)
+    g.manual_seed(epoch_seed(seed, epoch))
+    if persistent and num_workers > 0:
+        sampler = EpochSampler(len(ds), seed, shuffle)
+        sampler.set_epoch(epoch)
+        return torch.utils.data.DataLoader(ds, sampler=sampler, generator=g, persistent_workers=True, **common)
+    return torch.utils.data.DataLoader(ds, shuffle=shuffle, generator=g, persistent_workers=False, **common)
 
 
 def seed_everything(seed: int) -> None:
@@ -213,13 +292,23 @@ class TrainWorkspace:
         return build_augmented_dataset(train, path, self.cfg), val
 
     def _loader(self, ds: UmiPolicyDataset, train: bool, epoch: int = 0) -> torch.utils.data.DataLoader:
+        """The DataLoader of ``ds`` for ``epoch``. With workers and ``dataloader.persistent_workers`` it is built
+        once per dataset (:func:`make_loader`: persistent workers, epoch-seeded sampler) and re-used, so workers
+        start (import, scene load, kernel cache load) once per run; otherwise a new one per call (the reference)."""
         c, d = self.cfg.dataloader, self.cfg.device
-        g = torch.Generator()
-        g.manual_seed(self.cfg.training.seed * 100003 + epoch)
-        return torch.utils.data.DataLoader(
-            ds, batch_size=c.batch_size if train else c.val_batch_size, shuffle=c.shuffle and train, generator=g,
-            num_workers=d.num_workers, pin_memory=d.pin_memory and torch.cuda.is_available(),
-            persistent_workers=False, drop_last=False)
+        kw = dict(batch_size=c.batch_size if train else c.val_batch_size, shuffle=c.shuffle and train,
+                  seed=self.cfg.training.seed, num_workers=d.num_workers,
+                  pin_memory=d.pin_memory and torch.cuda.is_available(), persistent=c.persistent_workers,
+                  context=loader_context(ds))
+        if not (c.persistent_workers and d.num_workers > 0):
+            return make_loader(ds, epoch=epoch, **kw)
+        cache = self.__dict__.setdefault("_loaders", {})
+        key = (id(ds), train)
+        if key not in cache:
+            cache[key] = (ds, make_loader(ds, epoch=epoch, **kw))  # ds kept: its id stays valid
+        loader = cache[key][1]
+        loader.sampler.set_epoch(epoch)
+        return loader
 
     # ------------------------------------------------------------------ run
     def run(self) -> dict[str, Any]:
