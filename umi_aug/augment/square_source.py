@@ -490,7 +490,13 @@ class SquareSource:
         return check_square_demos(self.demos_dir, image_size)
 
     def fingerprint(self) -> str:
-        return config_hash(square_fingerprint(check_square_demos(self.demos_dir)), self.inp)
+        """Content of the demo folder + the input settings + the scene model's full config and code version (a
+        change of the scene model's defaults must not resume an export made with the old model)."""
+        from umi_aug.augment.square_scene import SCENE_VERSION, SquareSceneConfig
+
+        files = check_square_demos(self.demos_dir)
+        scene = SquareSceneConfig(**{"image_size": files.size, **self.inp.scene})
+        return config_hash(square_fingerprint(files), self.inp, scene, SCENE_VERSION)
 
     @property
     def dataset(self) -> Path:
