@@ -38,7 +38,8 @@ def demo(env):
     table_z = float(env.rs.table_offset[2])
     splice = None
     for t, s in enumerate(ep.states):
-        env.reset_to(s)
+        env.rs.sim.set_state_from_flattened(s)
+        env.rs.sim.forward()
         dp, dr = pregrasp_error(env.site_pose(GRIP_SITE), expert_pregrasp_pose(env.body_pose(NUT_BODY), table_z))
         if dp <= ExpertConfig().pos_tol and dr <= ExpertConfig().rot_tol:
             splice = t
@@ -220,3 +221,39 @@ def test_gt_render_equals_the_env_render(env, demo, gl):
     q_nan[1] = np.nan
     with pytest.raises(SimError, match="frame 1"):
         render_gt_frames(env, demo["states"][0], q_nan, w, None, [1])
+
+
+def test_contacts_find_self_collision(env):
+    env.reset(seed=0)
+    ik = PandaIK(env.model)
+    q = env.data.qpos[ik.qadr].copy()
+    assert ik.contacts(env.data, q) == []  # the reset pose is free
+    q[3], q[5] = -3.0, 0.3  # elbow folded, wrist bent back: link 7 / hand into links 1–2
+    own = ik.contacts(env.data, q, 1e-3, self_collision=True)
+    assert own and all(a.startswith(("robot0_", "gripper0_")) and b.startswith(("robot0_", "gripper0_"))
+                       for a, b, _ in own)
+    assert all(d < -1e-3 for _, _, d in own)
+    assert ik.contacts(env.data, q, 1e-3, self_collision=False) == []
+
+
+def test_posture_step_keeps_the_site(env, rng):
+    env.reset(seed=int(rng.integers(1 << 20)))
+    ik = PandaIK(env.model)
+    q = env.data.qpos[ik.qadr].copy()
+    T0 = ik.site_pose(q, env.data)
+    import mujoco
+
+    jacp, jacr = np.zeros((3, env.model.nv)), np.zeros((3, env.model.nv))
+    mujoco.mj_jacSite(env.model, env.data, jacp, jacr, ik.site)
+    null = np.linalg.svd(np.vstack([jacp[:, ik.dadr], jacr[:, ik.dadr]]))[2][-1]  # reference null direction
+    q_rest = q + 0.5 * null + 0.1 * rng.normal(0.0, 1.0, 7)
+    cap = np.full(7, 0.02)
+    q1 = ik.posture_step(env.data, q, q_rest, 0.5, cap)
+    dq = q1 - q
+    assert np.all(np.abs(dq) <= cap + 1e-12) and np.linalg.norm(dq) > 1e-3
+    assert abs(dq @ null) / np.linalg.norm(dq) > 0.999  # the step lies in the null space
+    moved = np.linalg.norm(ik.site_pose(q1, env.data)[:3, 3] - T0[:3, 3])
+    # reference: an unprojected step of the same size moves the site by first order
+    plain = q + (q_rest - q) * np.linalg.norm(dq) / np.linalg.norm(q_rest - q)
+    moved_plain = np.linalg.norm(ik.site_pose(plain, env.data)[:3, 3] - T0[:3, 3])
+    assert moved < 0.1 * moved_plain and moved < 2e-4

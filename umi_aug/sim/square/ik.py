@@ -183,6 +183,24 @@ class PandaIK:
             err = self._error(T_goal)
         return q, float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:])), it
 
+    def posture_step(self, data_src, q: np.ndarray, q_rest: np.ndarray, gain: float,
+                     max_abs: np.ndarray) -> np.ndarray:
+        """``q`` moved by ``gain · (q_rest − q)`` projected into the null space of the site Jacobian at ``q`` (the
+        site pose stays put to first order; the arm's elbow swivels towards ``q_rest``), the step scaled down so no
+        joint moves more than ``max_abs`` [7] rad, and clipped into the joint ranges. Rows of J with singular values
+        below 1e-3 of the largest count as null space (near a singularity the pose moves; re-solve after)."""
+        mj, m, d = self._mj, self.model, self.data
+        q = np.asarray(q, dtype=np.float64)
+        self._load(data_src, q)
+        jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        mj.mj_jacSite(m, d, jacp, jacr, self.site)
+        J = np.vstack([jacp[:, self.dadr], jacr[:, self.dadr]])
+        dq = (np.eye(7) - np.linalg.pinv(J, rcond=1e-3) @ J) @ (gain * (np.asarray(q_rest) - q))
+        big = np.abs(dq) / np.maximum(np.asarray(max_abs, dtype=np.float64), 1e-12)
+        if big.max() > 1.0:
+            dq /= big.max()
+        return np.clip(q + dq, self.lo, self.hi)
+
     def contacts(self, data_src, q: np.ndarray, max_penetration_m: float = _PENETRATION_M,
                  self_collision: bool = True) -> list[tuple[str, str, float]]:
         """Contacts of the moving robot (arm + gripper) penetrating deeper than ``max_penetration_m`` (metres)
