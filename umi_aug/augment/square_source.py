@@ -496,7 +496,10 @@ class SquareSource:
 
         files = check_square_demos(self.demos_dir)
         scene = SquareSceneConfig(**{"image_size": files.size, **self.inp.scene})
-        return config_hash(square_fingerprint(files), self.inp, scene, SCENE_VERSION)
+        from umi_aug.sim.square.feasibility import FeasibilityConfig
+
+        feas = FeasibilityConfig(**self.inp.feasibility) if self.inp.embodiment else None
+        return config_hash(square_fingerprint(files), self.inp, scene, SCENE_VERSION, feas)
 
     @property
     def dataset(self) -> Path:
