@@ -64,6 +64,8 @@ class FeasibilityConfig:
             1.48 without it); arriving at the splice with another elbow position can need more (1.15 seen).
         max_penetration_m: a robot contact deeper than this is a collision; self_collision: check robot–robot too.
         first_restarts, first_restart_std: frame 0's extra IK starts, N(0, std²) rad around the state's arm joints.
+        first_frame_margin_rad: frame 0 keeps the first solution this far inside every joint limit, else the
+            solution farthest inside (a start pinned at a limit, e.g. a flipped wrist, cannot move on).
         repair_restarts, repair_std: the same for a later frame failing from its warm start.
         null_gain: null-space pull towards mid-range joints of the repair attempt (fraction per iteration).
         posture_gain: per-frame null-space step towards the robot's rest joints (robosuite ``init_qpos``), as a
@@ -86,6 +88,7 @@ class FeasibilityConfig:
     repair_restarts: int = 4
     repair_std: float = 0.05
     null_gain: float = 0.3
+    first_frame_margin_rad: float = 0.2
     posture_gain: float = 0.1
     posture_step_frac: float = 0.25
     seed: int = 0
@@ -245,14 +248,17 @@ def check_panda_path(env: SquareEnv, state0: np.ndarray, T_world_cam: np.ndarray
         if cfg.posture_gain > 0.0 and have_prev:
             starts.insert(0, (ik.posture_step(src, q_prev, posture, cfg.posture_gain,
                                               cfg.posture_step_frac * step_pre), 0.0))
-        best = None  # (severity, message, q, pe, re, collided)
+        best, best_key = None, None  # (severity, message, q, pe, re, collided); its ranking
         for k, (start, gain) in enumerate(starts):
             qc, pe, re, _ = ik.refine(src, targets[t], start, lo=lo, hi=hi, q_rest=mid, null_gain=gain)
             sev, msg, collided = _frame_failure(ik, src, qc, pe, re, q_prev if have_prev else None, lo, hi,
                                                 step_pre if pre else step_post, cfg, pre)
-            if best is None or sev < best[0]:
-                best = (sev, msg, qc, pe, re, collided)
-            if sev < 0:
+            margin = float(np.min(np.minimum(qc - ik.lo, ik.hi - qc)))
+            key = (sev, -margin if sev < 0 else 0.0)
+            if best is None or key < best_key:
+                best, best_key = (sev, msg, qc, pe, re, collided), key
+            # a start (no previous joints): the first solution well inside the limits, else the one farthest in
+            if sev < 0 and (have_prev or margin >= cfg.first_frame_margin_rad):
                 break
         if k > 0:
             repaired.append(t)
