@@ -7,9 +7,10 @@ Same formulas, culling and outputs as the torch-autograd reference :func:`umi_au
 ``(mu - campos) / |mu - campos|``, clamped at 0.
 
 The backward recomputes each visible Gaussian's forward and runs the reverse pass by hand. The only non-trivial
-part is ``d J / d p`` (the EWA covariance depends on the projection Jacobian): :func:`_kb_jacobian_tangent`
+part is ``d J / d p`` (the EWA covariance depends on the projection Jacobian): :func:`_kb_jacobian_vjp`
 propagates a tangent through the KB Jacobian (forward-mode, both branches of :mod:`umi_aug.camera.kb`: the series
-branch near the optical axis, exact at ``r = 0``, and the direct branch, finite past 90 deg), once per axis.
+branch near the optical axis, exact at ``r = 0``, and the direct branch, finite past 90 deg), once per axis, from
+one evaluation of the primal.
 
 Output columns of :func:`project_fwd_kernel` (and the gradient columns of :func:`project_bwd_kernel`)::
 
@@ -23,7 +24,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from umi_aug.camera.kb import MIN_POINT_NORM, SMALL_T
+from umi_aug.camera.kb import SMALL_T
+from umi_aug.splat._kernels import _kb_project_jacobian
 from umi_aug.splat._constants import (
     ALPHA_THRESHOLD,
     BBOX_MARGIN_PX,
@@ -49,92 +51,63 @@ _C3_0, _C3_1, _C3_2, _C3_3, _C3_4, _C3_5, _C3_6 = SH_C3
 
 
 @njit(cache=True)
-def _kb_jacobian_tangent(px, py, pz, tx, ty, tz, fx, fy, k1, k2, k3, k4):  # pragma: no cover - compiled
-    """KB projection Jacobian ``J = d(u, v)/dp`` at ``p`` and its directional derivative along ``t``.
+def _kb_jacobian_vjp(px, py, pz, g00, g01, g02, g10, g11, g12, fx, fy, k1, k2, k3, k4):  # pragma: no cover
+    """KB projection Jacobian ``J = d(u, v)/dp`` at ``p`` and the vector-Jacobian product of ``J`` itself:
+    ``gp_k = sum_e g_e dJ_e/dp_k`` (the second derivatives of the projection the EWA covariance needs).
 
-    ``p`` (camera frame, metres) must be valid (finite, non-zero). Returns ``u, v`` (pixels minus the principal
-    point), ``J`` as ``j00, j01, j02, j10, j11, j12`` (pixels per metre) and ``dJ = sum_k t_k dJ/dp_k`` in the same
-    order. The same branches and formulas as :func:`umi_aug.splat._kernels._kb_project_jacobian`.
+    ``p`` (camera frame, metres) must be valid (finite, non-zero); ``g`` is dL/dJ in the order of ``J``. The primal
+    is evaluated once, then a tangent (forward mode) per axis ``k``: same branches and formulas as
+    :func:`umi_aug.splat._kernels._kb_project_jacobian` (series branch near the optical axis, exact at ``r = 0``;
+    direct branch, finite past 90 deg). Returns ``u, v`` (pixels minus the principal point),
+    ``j00, j01, j02, j10, j11, j12`` (pixels per metre) and ``gp0, gp1, gp2``.
     """
     m = max(abs(px), max(abs(py), abs(pz)))
     qx, qy, qz = px / m, py / m, pz / m
     n = math.sqrt(qx * qx + qy * qy + qz * qz)
     x, y, z = qx / n, qy / n, qz / n
     norm = m * n
-    dnorm = x * tx + y * ty + z * tz
-    dx, dy, dz = (tx - x * dnorm) / norm, (ty - y * dnorm) / norm, (tz - z * dnorm) / norm
     r2 = x * x + y * y
-    dr2 = 2.0 * (x * dx + y * dy)
     r = math.sqrt(r2)
-    if z > 0.0 and r <= SMALL_T * z:
-        # series branch: q = r^2/z^2, a = atan(t)/t, G = a P(q a^2), exact at r = 0
+    series = z > 0.0 and r <= SMALL_T * z
+    # primal (both branches' locals defined; only the taken branch's are used)
+    z2 = z3 = q = a = da = dda = P = dP = ddP = G = E = dG = 0.0
+    theta = rd = rho2 = t2 = td = dtd = ddtd = num = A = 0.0
+    if series:  # q = r^2/z^2, a = atan(t)/t, G = a P(q a^2)
         z2 = z * z
         z3 = z2 * z
         q = r2 / z2
-        dq = dr2 / z2 - 2.0 * r2 * dz / z3
         a = 1.0 + q * (-1.0 / 3.0 + q * (1.0 / 5.0 + q * (-1.0 / 7.0 + q * (1.0 / 9.0))))
         da = -1.0 / 3.0 + q * (2.0 / 5.0 + q * (-3.0 / 7.0 + q * (4.0 / 9.0)))
         dda = 2.0 / 5.0 + q * (-6.0 / 7.0 + q * (12.0 / 9.0))
-        a_t = da * dq
-        da_t = dda * dq
         w = q * a * a
-        w_t = dq * a * a + 2.0 * q * a * a_t
         P = 1.0 + w * (k1 + w * (k2 + w * (k3 + w * k4)))
         dP = k1 + w * (2.0 * k2 + w * (3.0 * k3 + w * 4.0 * k4))
         ddP = 2.0 * k2 + w * (6.0 * k3 + w * 12.0 * k4)
-        P_t = dP * w_t
-        dP_t = ddP * w_t
         G = a * P
-        G_t = a_t * P + a * P_t
         E = a * a + 2.0 * q * a * da
-        E_t = 2.0 * a * a_t + 2.0 * (dq * a * da + q * a_t * da + q * a * da_t)
         dG = da * P + a * dP * E
-        dG_t = da_t * P + da * P_t + a_t * dP * E + a * dP_t * E + a * dP * E_t
         s = G / z
-        s_t = G_t / z - G * dz / z2
         B = 2.0 * dG / z3
-        B_t = 2.0 * dG_t / z3 - 6.0 * dG * dz / (z2 * z2)
         s_z = -(G + 2.0 * q * dG) / z2
-        s_z_t = -(G_t + 2.0 * dq * dG + 2.0 * q * dG_t) / z2 + 2.0 * (G + 2.0 * q * dG) * dz / z3
         cxx, cxy, cyy = x * x, x * y, y * y
-        cxx_t, cxy_t, cyy_t = 2.0 * x * dx, dx * y + x * dy, 2.0 * y * dy
     else:
         theta = math.atan2(r, z)
-        if r > 0.0:
-            rd = r
-            rd_t = (x * dx + y * dy) / r
-        else:  # on the axis behind the camera (theta = pi): r held at 1 like the reference, zero derivative
-            rd = 1.0
-            rd_t = 0.0
+        rd = r if r > 0.0 else 1.0  # on the axis behind the camera: held at 1 like the reference
         rho2 = r2 + z * z
-        rho2_t = dr2 + 2.0 * z * dz
-        th_t = (z * rd_t - r * dz) / rho2 if r > 0.0 else 0.0
         t2 = theta * theta
         td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
         dtd = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
         ddtd = theta * (6.0 * k1 + t2 * (20.0 * k2 + t2 * (42.0 * k3 + t2 * 72.0 * k4)))
-        td_t = dtd * th_t
-        dtd_t = ddtd * th_t
         s = td / rd
-        s_t = td_t / rd - td * rd_t / (rd * rd)
         num = dtd * z / rho2 - s
-        num_t = dtd_t * z / rho2 + dtd * dz / rho2 - dtd * z * rho2_t / (rho2 * rho2) - s_t
         A = num / (rd * rd)
-        A_t = num_t / (rd * rd) - 2.0 * num * rd_t / (rd * rd * rd)
         s_z = -dtd / rho2
-        s_z_t = -dtd_t / rho2 + dtd * rho2_t / (rho2 * rho2)
         B = A * r2
-        B_t = A_t * r2 + A * dr2
         if r2 > 0.0:
             cxx, cxy, cyy = x * x / r2, x * y / r2, y * y / r2
-            cxx_t = 2.0 * x * dx / r2 - cxx * dr2 / r2
-            cxy_t = (dx * y + x * dy) / r2 - cxy * dr2 / r2
-            cyy_t = 2.0 * y * dy / r2 - cyy * dr2 / r2
         else:
             cxx, cxy, cyy = 0.0, 0.0, 0.0
-            cxx_t, cxy_t, cyy_t = 2.0 * x * dx, dx * y + x * dy, 2.0 * y * dy
     inv = 1.0 / norm
-    inv_t = -dnorm * inv * inv
     u = fx * s * x
     v = fy * s * y
     j00 = fx * (s + cxx * B) * inv
@@ -143,25 +116,58 @@ def _kb_jacobian_tangent(px, py, pz, tx, ty, tz, fx, fy, k1, k2, k3, k4):  # pra
     j10 = fy * cxy * B * inv
     j11 = fy * (s + cyy * B) * inv
     j12 = fy * y * s_z * inv
-    d00 = fx * ((s_t + cxx_t * B + cxx * B_t) * inv + (s + cxx * B) * inv_t)
-    d01 = fx * ((cxy_t * B + cxy * B_t) * inv + cxy * B * inv_t)
-    d02 = fx * ((dx * s_z + x * s_z_t) * inv + x * s_z * inv_t)
-    d10 = fy * ((cxy_t * B + cxy * B_t) * inv + cxy * B * inv_t)
-    d11 = fy * ((s_t + cyy_t * B + cyy * B_t) * inv + (s + cyy * B) * inv_t)
-    d12 = fy * ((dy * s_z + y * s_z_t) * inv + y * s_z * inv_t)
-    return u, v, j00, j01, j02, j10, j11, j12, d00, d01, d02, d10, d11, d12
-
-
-@njit(cache=True)
-def _ray_angle(px, py, pz):  # pragma: no cover - compiled
-    """``(ok, |p|, theta)``: ``ok`` = finite and not at the camera centre (as ``kb_torch._normalise_points``)."""
-    m = max(abs(px), max(abs(py), abs(pz)))
-    if not (m > MIN_POINT_NORM) or not math.isfinite(m):
-        return False, 0.0, 0.0
-    qx, qy, qz = px / m, py / m, pz / m
-    n = math.sqrt(qx * qx + qy * qy + qz * qz)
-    x, y, z = qx / n, qy / n, qz / n
-    return True, m * n, math.atan2(math.sqrt(x * x + y * y), z)
+    gp0 = gp1 = gp2 = 0.0
+    for k in range(3):  # tangent along the axis k
+        tx = 1.0 if k == 0 else 0.0
+        ty = 1.0 if k == 1 else 0.0
+        tz = 1.0 if k == 2 else 0.0
+        dnorm = x * tx + y * ty + z * tz
+        dx, dy, dz = (tx - x * dnorm) / norm, (ty - y * dnorm) / norm, (tz - z * dnorm) / norm
+        dr2 = 2.0 * (x * dx + y * dy)
+        if series:
+            dq = dr2 / z2 - 2.0 * r2 * dz / z3
+            a_t = da * dq
+            da_t = dda * dq
+            w_t = dq * a * a + 2.0 * q * a * a_t
+            P_t = dP * w_t
+            dP_t = ddP * w_t
+            G_t = a_t * P + a * P_t
+            E_t = 2.0 * a * a_t + 2.0 * (dq * a * da + q * a_t * da + q * a * da_t)
+            dG_t = da_t * P + da * P_t + a_t * dP * E + a * dP_t * E + a * dP * E_t
+            s_t = G_t / z - G * dz / z2
+            B_t = 2.0 * dG_t / z3 - 6.0 * dG * dz / (z2 * z2)
+            s_z_t = -(G_t + 2.0 * dq * dG + 2.0 * q * dG_t) / z2 + 2.0 * (G + 2.0 * q * dG) * dz / z3
+            cxx_t, cxy_t, cyy_t = 2.0 * x * dx, dx * y + x * dy, 2.0 * y * dy
+        else:
+            rd_t = (x * dx + y * dy) / r if r > 0.0 else 0.0
+            rho2_t = dr2 + 2.0 * z * dz
+            th_t = (z * rd_t - r * dz) / rho2 if r > 0.0 else 0.0
+            td_t = dtd * th_t
+            dtd_t = ddtd * th_t
+            s_t = td_t / rd - td * rd_t / (rd * rd)
+            num_t = dtd_t * z / rho2 + dtd * dz / rho2 - dtd * z * rho2_t / (rho2 * rho2) - s_t
+            A_t = num_t / (rd * rd) - 2.0 * num * rd_t / (rd * rd * rd)
+            s_z_t = -dtd_t / rho2 + dtd * rho2_t / (rho2 * rho2)
+            B_t = A_t * r2 + A * dr2
+            if r2 > 0.0:
+                cxx_t = 2.0 * x * dx / r2 - cxx * dr2 / r2
+                cxy_t = (dx * y + x * dy) / r2 - cxy * dr2 / r2
+                cyy_t = 2.0 * y * dy / r2 - cyy * dr2 / r2
+            else:
+                cxx_t, cxy_t, cyy_t = 2.0 * x * dx, dx * y + x * dy, 2.0 * y * dy
+        inv_t = -dnorm * inv * inv
+        acc = g00 * fx * ((s_t + cxx_t * B + cxx * B_t) * inv + (s + cxx * B) * inv_t)
+        acc += (g01 * fx + g10 * fy) * ((cxy_t * B + cxy * B_t) * inv + cxy * B * inv_t)
+        acc += g02 * fx * ((dx * s_z + x * s_z_t) * inv + x * s_z * inv_t)
+        acc += g11 * fy * ((s_t + cyy_t * B + cyy * B_t) * inv + (s + cyy * B) * inv_t)
+        acc += g12 * fy * ((dy * s_z + y * s_z_t) * inv + y * s_z * inv_t)
+        if k == 0:
+            gp0 = acc
+        elif k == 1:
+            gp1 = acc
+        else:
+            gp2 = acc
+    return u, v, j00, j01, j02, j10, j11, j12, gp0, gp1, gp2
 
 
 @njit(cache=True)
@@ -286,13 +292,12 @@ def project_fwd_kernel(
             px = Rcw[0, 0] * mx + Rcw[0, 1] * my + Rcw[0, 2] * mz + tcw[0]
             py = Rcw[1, 0] * mx + Rcw[1, 1] * my + Rcw[1, 2] * mz + tcw[1]
             pz = Rcw[2, 0] * mx + Rcw[2, 1] * my + Rcw[2, 2] * mz + tcw[2]
-            ok, depth, theta = _ray_angle(px, py, pz)
+            ok, theta, u, v, j00, j01, j02, j10, j11, j12 = _kb_project_jacobian(
+                px, py, pz, fx, fy, cx, cy, k1, k2, k3, k4)
+            j[0], j[1], j[2], j[3], j[4], j[5] = j00, j01, j02, j10, j11, j12
+            depth = math.sqrt(px * px + py * py + pz * pz)
             if not (ok and theta <= theta_max + theta_slack and depth > near and depth < far):
                 continue
-            res = _kb_jacobian_tangent(px, py, pz, 0.0, 0.0, 0.0, fx, fy, k1, k2, k3, k4)
-            u, v = res[0], res[1]
-            for e in range(6):
-                j[e] = res[2 + e]
             rt = _rotation(np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
                            np.float64(quats[i, 3]))
             for e in range(9):
@@ -322,8 +327,6 @@ def project_fwd_kernel(
             lim = 2.0 * (math.log(op) + LOG_INV_ALPHA_THRESHOLD)
             hx = math.sqrt(max(lim * sxx, 0.0)) * (1.0 + BBOX_MARGIN_REL) + BBOX_MARGIN_PX
             hy = math.sqrt(max(lim * syy, 0.0)) * (1.0 + BBOX_MARGIN_REL) + BBOX_MARGIN_PX
-            u += cx
-            v += cy
             if not (u + hx >= 0.0 and u - hx <= width - 1.0 and v + hy >= 0.0 and v - hy <= height - 1.0):
                 continue
             dx_, dy_, dz_, _ = _view_dir(mx, my, mz, campos)
@@ -382,10 +385,10 @@ def project_bwd_kernel(
             px = Rcw[0, 0] * mx + Rcw[0, 1] * my + Rcw[0, 2] * mz + tcw[0]
             py = Rcw[1, 0] * mx + Rcw[1, 1] * my + Rcw[1, 2] * mz + tcw[1]
             pz = Rcw[2, 0] * mx + Rcw[2, 1] * my + Rcw[2, 2] * mz + tcw[2]
-            _, depth, _ = _ray_angle(px, py, pz)
-            res = _kb_jacobian_tangent(px, py, pz, 0.0, 0.0, 0.0, fx, fy, k1, k2, k3, k4)
-            for e in range(6):
-                j[e] = res[2 + e]
+            depth = math.sqrt(px * px + py * py + pz * pz)
+            _, _, _, _, j00, j01, j02, j10, j11, j12 = _kb_project_jacobian(
+                px, py, pz, fx, fy, 0.0, 0.0, k1, k2, k3, k4)
+            j[0], j[1], j[2], j[3], j[4], j[5] = j00, j01, j02, j10, j11, j12
             rt = _rotation(np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
                            np.float64(quats[i, 3]))
             qw, qx, qy, qz, qn = rt[0], rt[1], rt[2], rt[3], rt[4]
@@ -468,16 +471,12 @@ def project_bwd_kernel(
                 g_quats[i, 1] = gx - qx * proj
                 g_quats[i, 2] = gy - qy * proj
                 g_quats[i, 3] = gz - qz * proj
-            # ---- camera-frame point: uv (J^T), ray depth, and the KB Jacobian's own derivative (3 tangents)
+            # ---- camera-frame point: uv (J^T), ray depth, and the KB Jacobian's own derivative
             gu, gv = np.float64(g[0]), np.float64(g[1])
             gdep = np.float64(g[9])
+            vjp = _kb_jacobian_vjp(px, py, pz, gJ[0], gJ[1], gJ[2], gJ[3], gJ[4], gJ[5], fx, fy, k1, k2, k3, k4)
             for k in range(3):
-                t = _kb_jacobian_tangent(px, py, pz, 1.0 if k == 0 else 0.0, 1.0 if k == 1 else 0.0,
-                                         1.0 if k == 2 else 0.0, fx, fy, k1, k2, k3, k4)
-                acc = gu * j[k] + gv * j[3 + k]
-                for e in range(6):
-                    acc += gJ[e] * t[8 + e]
-                gp[k] = acc
+                gp[k] = gu * j[k] + gv * j[3 + k] + vjp[8 + k]
             gp[0] += gdep * px / depth
             gp[1] += gdep * py / depth
             gp[2] += gdep * pz / depth

@@ -10,9 +10,9 @@ scale regularisers, Adam (:mod:`umi_aug.splat.optim`), then 3DGS-MCMC position n
 ``holdout_every``-th view (index 0, 8, 16, ...) is held out: never trained on, evaluated (masked PSNR / SSIM).
 
 Why MCMC rather than clone/split/prune: on the CPU the step time is proportional to the number of Gaussians
-(the torch projection dominates), so a hard, smoothly growing budget gives a predictable run time; MCMC needs no
-screen-space gradient statistics or opacity resets (which cost several hundred steps to recover each, a large
-share of a 3-5k-step CPU run) and works from random initialisation.
+(projection and rasteriser both scale with it), so a hard, smoothly growing budget gives a predictable run time;
+MCMC needs no screen-space gradient statistics or opacity resets (which cost several hundred steps to recover
+each, a large share of a 3-5k-step CPU run) and works from random initialisation.
 
 Outputs in ``out_dir``: ``scene.ply`` (INRIA layout), ``checkpoint.pt`` (atomic; resumable), ``metrics.json``,
 ``contact_sheet.png`` (held-out GT | render | |error|), ``curve.png`` (PSNR / SSIM vs iteration and seconds).
