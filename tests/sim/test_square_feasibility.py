@@ -103,7 +103,8 @@ def test_straight_line_to_pregrasp_passes_and_is_deterministic(env):
     T_cam_site = pose_inverse(T0) @ env.site_pose(GRIP_SITE)
     goal = expert_pregrasp_pose(env.body_pose(NUT_BODY), float(env.rs.table_offset[2]))
     flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # the gripper is symmetric under a half turn about its axis
-    goal = min((goal, goal @ flip), key=lambda G: rotation_geodesic_distance(G[:3, :3], env.site_pose(GRIP_SITE)[:3, :3]))
+    R_now = env.site_pose(GRIP_SITE)[:3, :3]
+    goal = min((goal, goal @ flip), key=lambda G: rotation_geodesic_distance(G[:3, :3], R_now))
     T1 = goal @ pose_inverse(T_cam_site)
     T = interpolate_pose(T0, T1, np.linspace(0.0, 1.0, 60))
     w = np.full(60, 0.08)

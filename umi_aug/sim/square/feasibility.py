@@ -5,10 +5,10 @@ axes, metres): new frames from a start pose into the demo's pre-grasp pose, then
 on, the demo's own motion. :func:`check_panda_path` restores the demo's initial state (objects, arm), turns every
 camera pose into a grip-site target with the state's fixed camera→site transform, and tracks the targets by
 damped-least-squares IK (:meth:`~umi_aug.sim.square.ik.PandaIK.refine`), each frame warm-started from the previous
-frame's joints (frame 0 from the state's arm joints) after a small bounded null-space step of the elbow towards
-the Panda's rest posture (what robosuite's OSC controller does while recording the demos; without it the IK's
-elbow drifts and, near the stretched-arm poses of the insertion, swings faster than the joints may). Per frame it
-checks
+frame's joints after a small bounded null-space step of the elbow towards the Panda's rest posture (robosuite's OSC
+controller does the same while recording the demos; without it the IK's elbow drifts and, near the stretched-arm
+poses of the insertion, swings faster than the joints may). Frame 0 starts from the state's arm joints, with seeded
+restarts, and keeps a solution well inside the joint limits. Per frame it checks
 
 - the IK residual (position / rotation) against :class:`FeasibilityConfig`'s tolerances;
 - the joint limits: before ``upto`` with a margin inside them; from ``upto`` on (the demo's replayed motion) the
@@ -20,7 +20,8 @@ checks
 
 with the fingers at the given widths. Repair: a frame failing from the warm start is retried from the previous
 joints without the posture step, with a null-space pull towards mid-range joints, and from seeded perturbations
-of the warm start; the first candidate passing every check is kept. Deterministic (restart seeds are derived from ``cfg.seed`` and the frame index).
+of the warm start; the first candidate passing every check is kept. Deterministic (restart seeds are derived
+from ``cfg.seed`` and the frame index).
 
 :func:`render_gt_frames` renders the simulator's ground-truth wrist images of such a path (the study's
 ``gt_render`` oracle). Neither function changes ``env``'s simulation state: both work on private ``MjData``.
@@ -106,7 +107,8 @@ class PathFeasibility:
         pos_err_m, rot_err_rad: float64 [N] IK residuals, metres / radians (NaN where not solved).
         min_limit_margin_rad: smallest distance of a solved joint to its limit (negative: past it).
         max_joint_speed_rad_s: largest |Δq| · fps between consecutive solved frames.
-        max_speed_ratio: the same as a fraction of the joint's velocity limit (> speed_scale fails).
+        max_speed_ratio: the same as a fraction of the joint's velocity limit (above ``speed_scale`` /
+            ``post_splice_speed_scale`` fails).
         collision_frames: frames (< upto) whose configuration collides.
         repaired_frames: frames that needed a repair attempt (passed or not).
         upto: the splice index used; seconds: wall time of the check.
@@ -200,9 +202,9 @@ def check_panda_path(env: SquareEnv, state0: np.ndarray, T_world_cam: np.ndarray
             (None: N, the whole path is new).
         cfg: tolerances (default :class:`FeasibilityConfig`).
         scene_state: float64 [S] flattened state whose objects (everything but the arm joints and fingers) the
-            contacts are checked against; default ``state0``. Pass the demo's state at the splice frame: a reset
-            drops the nut from 6 cm above the table and it settles during the first ~4 frames, so ``state0``'s nut
-            floats where the approach passes.
+            contacts are checked against; default ``state0``. A reset drops the nut from 6 cm above the table and
+            it settles during the first ~4 frames, so a demo's raw ``states[0]`` has it floating where the approach
+            passes: pass the demo's state at the splice frame here (or a ``state0`` with settled objects).
     Returns:
         :class:`PathFeasibility`.
     """
@@ -213,7 +215,7 @@ def check_panda_path(env: SquareEnv, state0: np.ndarray, T_world_cam: np.ndarray
     upto = n if upto is None else int(upto)
     if not 0 <= upto <= n:
         raise SimError(f"check_panda_path: upto={upto} outside [0, N={n}]")
-    mj, m = import_mujoco(), env.model
+    m = env.model
     ik, fingers = _ik(env), _Fingers(env)
     qpos0 = state_qpos(env, state0)
     src = _scratch(env, qpos0)
