@@ -20,6 +20,13 @@ from umi_aug.splat.project import project_gaussians
 from umi_aug.splat.scenes import random_gaussians
 from tests.splat._helpers import PARAMS, gopro_small, loss_weights, random_pose, rays_at, weighted_loss
 
+def _lens(width: int = 64, height: int = 48) -> FisheyeIntrinsics:
+    """UMI's GoPro KB lens (theta_max ~ 104 deg: rays past 90 deg are inside the image circle) with non-square
+    pixels (fy = 1.04 fx), so that a mixed-up fx / fy shows."""
+    g = gopro_small(width, height)
+    return FisheyeIntrinsics(width, height, g.fx, 1.04 * g.fy, g.cx, g.cy, g.k)
+
+
 OUTPUTS = ("means2d", "conics", "opacities", "colors", "depths", "cov2d")
 FILTERS = ("inria", "mip", "none")
 
@@ -69,7 +76,7 @@ def _weights(rng, proj) -> dict[str, torch.Tensor]:
 
 @pytest.mark.parametrize("filt", FILTERS)
 def test_fast_projection_matches_reference_float64(rng, filt):
-    intr = gopro_small(64, 48)  # theta_max ~ 104 deg: rays past 90 deg are inside the image circle
+    intr = _lens()
     T = random_pose(rng)
     g = _extreme_gaussians(rng, intr, T, 150).requires_grad_(True)
     deg = int(rng.integers(0, 4))
@@ -98,7 +105,7 @@ def test_fast_projection_matches_reference_float64(rng, filt):
 def test_fast_projection_float32_close_to_float64(rng):
     """float32 scene: the fast path computes in float64 inside, so its gradients agree with the float64 reference
     to float32 rounding (the float32 torch reference is the less accurate of the two)."""
-    intr = gopro_small(64, 48)
+    intr = _lens()
     T = random_pose(rng)
     g64 = random_gaussians(200, rng, intr, T, theta_max=1.8, sigma_px_range=(0.8, 6.0), dtype=torch.float64)
     g32 = g64.to(torch.float32)
@@ -120,7 +127,7 @@ def test_fast_projection_float32_close_to_float64(rng):
 def test_fast_projection_gradcheck(rng, filt):
     """Central finite differences (torch gradcheck, float64) of the numba forward against its backward on a tiny
     case: one Gaussian near the optical axis (series branch), one past 90 deg, one ordinary, SH degree 3."""
-    intr = gopro_small(64, 48)
+    intr = _lens()
     T = random_pose(rng)
     p_cam = np.stack([rays_at(2e-3, 0.4) * 1.2, rays_at(1.72, -2.0) * 0.9, rays_at(0.7, 1.1) * 2.0])
     n = len(p_cam)
@@ -147,7 +154,7 @@ def test_kb_jacobian_vjp_matches_finite_differences(rng, theta):
     """The derivative of the KB Jacobian (the part of d Sigma_2D / d p that autograd got from the torch graph):
     ``sum_e g_e dJ_e/dp`` against central differences of the analytic Jacobian, on / near the optical axis (both
     sides of the series-branch switch at r = 0.01 z) and past 90 deg."""
-    intr = gopro_small(64, 48)
+    intr = _lens()
     fx, fy = intr.fx, intr.fy
     k = intr.k
     p = rays_at(theta, float(rng.uniform(-math.pi, math.pi))) * float(rng.uniform(0.3, 3.0))
@@ -177,7 +184,7 @@ def test_render_fast_projection_equals_torch_projection(rng, filt):
     """End to end (float64): ``render`` with the fast projection (the default with gradients) and with the
     torch-autograd reference projection give the same image and the same gradients of every parameter; the
     step's timings name both backwards."""
-    intr = gopro_small(48, 40)
+    intr = _lens(48, 40)
     T = random_pose(rng)
     g = _extreme_gaussians(rng, intr, T, 60).requires_grad_(True)
     bg = torch.as_tensor(rng.uniform(size=3))
