@@ -142,3 +142,15 @@ def test_per_demo_scene_trains_on_the_demo_scene(built, env, states, monkeypatch
 
     monkeypatch.setattr(train_mod, "train_splat", lambda *a, **k: (_ for _ in ()).throw(AssertionError("retrained")))
     assert train_demo_scene(work, env, states[1], TINY, progress=False).key == d.key
+
+
+def test_nut_orbit_size_follows_the_policy_lens_density():
+    from umi_aug.sim.square.camera import wrist_intrinsics
+
+    for size in (84, 224):
+        c = SquareSceneConfig(image_size=size)
+        expect = wrist_intrinsics(size).fx * np.radians(c.nut_fov_deg) * c.nut_oversample
+        assert abs(c.nut_size - expect) <= 0.5 and c.nut_size >= 16
+    assert SquareSceneConfig(nut_image_size=50).nut_size == 50
+    with pytest.raises(AugmentError, match="nut_oversample"):
+        SquareSceneConfig(nut_oversample=0.0).check()
