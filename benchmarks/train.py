@@ -91,6 +91,76 @@ def _split(timings: dict) -> dict[str, float]:
     return t
 
 
+def _profile_steps(run_dir: Path, sess: Path, width: int, contact: dict, n_views: int) -> None:
+    """CPU milliseconds per stage of one training step on the trained scene in ``run_dir`` (its checkpoint), the
+    two projections interleaved on the same ``n_views`` random training views, learning rates 0 (the scene does not
+    change). The stage clocks of the renderer are switched to this process's CPU time for the measurement, so the
+    split does not depend on how the shared machine schedules us."""
+    import types
+
+    import numpy as np
+    import torch
+
+    import umi_aug.splat.project as project_mod
+    import umi_aug.splat.renderer as renderer_mod
+    from umi_aug.splat.gaussians import Gaussians
+    from umi_aug.splat.losses import photometric_loss
+    from umi_aug.splat.optim import GaussianAdam
+    from umi_aug.splat.train_session import session_views
+
+    views, intr = session_views(sess, image_size=width or None, contact=contact)
+    ck = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)
+    params = {k: v.clone().requires_grad_(True) for k, v in ck["params"].items()}
+    opt = GaussianAdam(params)
+    zero_lr = {k: 0.0 for k in params}
+    data = [(torch.from_numpy(v.image.astype(np.float32) / 255.0), torch.from_numpy(v.loss_mask), v.T_world_cam)
+            for v in views]
+    clock = time.process_time
+
+    def step(i: int, projection: str) -> dict[str, float]:
+        img, mask, T = data[i]
+        t0 = clock()
+        r = renderer_mod.render(Gaussians(**params), T, intr, torch.zeros(3), 3, projection=projection)
+        t1 = clock()
+        loss, _ = photometric_loss(r.rgb, img, mask, 0.2)
+        loss = loss + 0.01 * torch.sigmoid(params["logit_opacities"]).mean() + 0.01 * torch.exp(
+            params["log_scales"]).mean()
+        t2 = clock()
+        loss.backward()
+        t3 = clock()
+        opt.step(zero_lr)
+        opt.zero_grad()
+        t4 = clock()
+        tm = r.meta["timings"]
+        pb, rb = tm.get("project_backward", 0.0), tm.get("raster_backward", 0.0)
+        return {"project": tm["project"], "project_backward": pb, "raster": tm["raster"], "raster_backward": rb,
+                "loss": t2 - t1, "other_backward": t3 - t2 - pb - rb, "step": t4 - t3, "total": t4 - t0}
+
+    shim = types.SimpleNamespace(perf_counter=clock)
+    saved = renderer_mod.time, project_mod.time
+    renderer_mod.time = project_mod.time = shim
+    try:
+        idx = np.random.default_rng(0).choice(len(views), n_views, replace=False)
+        step(int(idx[0]), "auto"), step(int(idx[0]), "torch")  # warm-up
+        res: dict[str, list] = {"torch": [], "auto": []}
+        for j, i in enumerate(idx):
+            for proj in (("torch", "auto") if j % 2 else ("auto", "torch")):
+                res[proj].append(step(int(i), proj))
+    finally:
+        renderer_mod.time, project_mod.time = saved
+    keys = list(res["torch"][0])
+    print(f"\n== CPU ms per step (median of {n_views} views, interleaved; {params['means'].shape[0]} Gaussians at "
+          f"{intr.width}x{intr.height}, scene of {run_dir.name}; load average {os.getloadavg()[0]:.1f})")
+    print(f"{'proj':>6} " + " ".join(f"{k:>16}" for k in keys))
+    med = {p: {k: 1e3 * float(np.median([x[k] for x in v])) for k in keys} for p, v in res.items()}
+    for p, name in (("torch", "torch"), ("auto", "fast")):
+        print(f"{name:>6} " + " ".join(f"{med[p][k]:>9.1f} ({med[p][k] / med[p]['total']:.2f})" for k in keys))
+    t, f = med["torch"], med["auto"]
+    share_t = (t["project"] + t["other_backward"] - f["other_backward"]) / t["total"]
+    share_f = (f["project"] + f["project_backward"]) / f["total"]
+    print(f"step-time ratio torch / fast (CPU): {t['total'] / f['total']:.2f}; projection (forward + backward) share "
+          f"of the step: torch {share_t:.2f} (its backward = other_backward minus the fast run's), fast {share_f:.2f}")
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--session", default=None)
@@ -105,6 +175,10 @@ def main() -> int:
     ap.add_argument("--eval-every", type=int, default=100)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--profile-views", type=int, default=12,
+                    help="after training: CPU split of a step on this many views per projection (0 = skip)")
+    ap.add_argument("--profile-only", default=None, metavar="RUN_DIR:WIDTH",
+                    help="only the CPU split, on the checkpoint in RUN_DIR (WIDTH 0 = native)")
     args = ap.parse_args()
     configure_threads(args.threads)
     import logging
@@ -125,6 +199,10 @@ def main() -> int:
     init = None if args.init == "random" else (
         sess / "ground_truth" / "scene" / "scene_points.ply" if args.init == "gt" else Path(args.init))
     print(f"session {sess}: {meta['sequences']}, contact frames {contact}; init = {args.init}")
+    if args.profile_only:
+        run_dir, width = args.profile_only.rsplit(":", 1)
+        _profile_steps(Path(run_dir), sess, int(width), contact, args.profile_views)
+        return 0
     print(f"python {platform.python_version()}, torch {torch.__version__}, numba {numba.__version__}, "
           f"threads {args.threads} (numba {numba.get_num_threads()}), cpus {os.cpu_count()}, "
           f"load average at start {os.getloadavg()}")
@@ -207,6 +285,10 @@ def main() -> int:
             steps = max(r.history[-1]["iteration"], 1)
             cells = " ".join(f"{t[k] / tot:>7.3f} {1e3 * t[k] / steps:>6.1f}ms" for k in STAGES)
             print(f"{name:<14} {proj:>5} {cells} {tot / steps:>7.3f}")
+    if args.profile_views > 0:
+        for name, iters, budget, width, runs in results:
+            last = list(runs.values())[-1]
+            _profile_steps(last["out"], sess, int(width), contact, args.profile_views)
     print(f"load average at end {os.getloadavg()}")
     return 0
 
