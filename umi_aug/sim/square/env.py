@@ -122,6 +122,9 @@ class SquareEnv:
 
     def _fix_model(self) -> None:
         self.model.mat_reflectance[:] = 0.0  # no planar reflections (halves robosuite render cost)
+        # robosuite hides its visualisation sites (grip-site markers) only in reset(); a fresh env or reset_to()
+        # would otherwise render red/green markers the recorded demos never show
+        self.rs.visualize(vis_settings={v: False for v in self.rs._visualizations})
 
     @property
     def camera(self) -> WristFisheyeCamera:
