@@ -36,12 +36,11 @@ from umi_aug.augment.cache import StageResult, run_stage
 from umi_aug.augment.config import AugmentConfig, config_hash
 from umi_aug.augment.session_assets import _PROCESS_CACHE, DemoInfo, SessionAssets, _stage_gripper_mask
 from umi_aug.errors import AugmentError, UmiAugError
+from umi_aug.sim.square.scan import ROBOT_BODY_PREFIXES
 
 __all__ = ["SquareInput", "SquareSource", "SquareAssets", "check_square_demos", "prepare_square", "is_square_demos",
            "gt_render_function", "spartn_render_function", "ROBOT_BODY_PREFIXES"]
 
-#: MuJoCo body-name prefixes of the robot (arm, gripper, mount): never part of the scene.
-ROBOT_BODY_PREFIXES: tuple[str, ...] = ("robot0_", "gripper0_", "mount0_")
 #: The square env's control rate (frames per second of the demos).
 SQUARE_FPS: float = 20.0
 
