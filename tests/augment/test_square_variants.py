@@ -259,3 +259,28 @@ def test_variant_refuses_to_overwrite_its_source(fake_export):
     with pytest.raises(AugmentError, match="n_demos = 4; the export holds 3"):
         write_variant("none", src, src.with_name("x.zarr.zip"), 4, progress=False)
     assert src.read_bytes() == before and not src.with_name("x.zarr.zip").exists()
+
+
+def test_subset_of_a_variant_equals_the_variant_of_fewer_demos(fake_export, tmp_path):
+    """A smaller data size cut from a larger variant dataset holds the same bytes as that variant written for the
+    smaller size directly (so the study renders gt_render / spartn once, for its largest size)."""
+    from umi_aug.augment.square_variants import SpartnConfig, subset_variant, write_variant
+
+    src, _ = fake_export
+    cfg = SpartnConfig(stride=4, seed=2)
+    render = {"gt_render": lambda e, info: np.full((info["n_new"], S, S, 3), 90, np.uint8),
+              "spartn": lambda e, info: np.full((len(info["T_world_cam"]), S, S, 3), 40, np.uint8),
+              "action_only": None}
+    for v, fn in render.items():
+        big, direct, cut = (tmp_path / f"{v}_{k}.zarr.zip" for k in ("n3", "n2", "cut2"))
+        write_variant(v, src, big, 3, render_new=fn, spartn=cfg, progress=False)
+        write_variant(v, src, direct, 2, render_new=fn, spartn=cfg, progress=False)
+        summ = subset_variant(big, cut, 2, progress=False)
+        assert summ["variant"] == v and summ["n_demos"] == 2
+        a, b = _read(direct), _read(cut)
+        np.testing.assert_array_equal(a[1], b[1])
+        for k in a[0]:
+            np.testing.assert_array_equal(a[0][k], b[0][k], err_msg=f"{v}: {k}")
+        for k in a[2]:
+            np.testing.assert_array_equal(a[2][k], b[2][k])
+        assert _stored_chunks(direct) == _stored_chunks(cut)

@@ -34,7 +34,7 @@ import numpy as np
 from umi_aug.augment.exporter import IMAGE_KEY, RECORD_CHUNK, RECORD_KEYS, _append_episode, read_episode_records
 from umi_aug.errors import AugmentError
 
-__all__ = ["VARIANTS", "SpartnConfig", "write_variant", "action_only_sources", "spartn_perturbation",
+__all__ = ["VARIANTS", "SpartnConfig", "write_variant", "subset_variant", "action_only_sources", "spartn_perturbation",
            "VARIANT_ATTR"]
 
 VARIANTS: tuple[str, ...] = ("none", "ours", "gt_render", "action_only", "spartn")
@@ -134,7 +134,8 @@ def _add(buf, src, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_ro
 
 def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os.PathLike, n_demos: int, *,
                   render_new: Callable[[int, dict[str, Any]], np.ndarray] | None = None,
-                  spartn: SpartnConfig | None = None, progress: bool = True) -> dict[str, Any]:
+                  spartn: SpartnConfig | None = None, progress: bool = True, label: str | None = None
+                  ) -> dict[str, Any]:
     """Write the ``variant`` dataset of the first ``n_demos`` source demos of the export ``ours_path``.
 
     Args:
@@ -147,6 +148,7 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
             ``info["T_world_cam"]`` ([K, 4, 4]) with the gripper of the demo's frames ``info["overlay_rows"]`` [K].
             :func:`square_render_functions` makes both for a square demo folder.
         spartn: :class:`SpartnConfig` (``spartn`` only).
+        label: the variant name recorded in the output (default ``variant``; :func:`subset_variant`).
     Returns:
         summary dict (episodes, frames rendered, per-kind counts) — also stored as the root attribute
         :data:`VARIANT_ATTR`.
@@ -164,11 +166,11 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
                            "another path (the export would be replaced)")
     rec = read_episode_records(ours_path)
     src_ep, splice, aug_id = rec["aug_source_episode"], rec["aug_splice_index"], rec["aug_id"]
-    n_src = int((aug_id < 0).sum())
+    n_src = int((aug_id == -1).sum())  # source demos (-2: SPARTN episodes of a spartn variant)
     if n_demos < 1 or n_demos > n_src:
         raise AugmentError(f"{ours_path}: n_demos = {n_demos}; the export holds {n_src} source demos")
     out_path = Path(out_path)
-    summary: dict[str, Any] = {"variant": variant, "n_demos": int(n_demos), "source": str(ours_path),
+    summary: dict[str, Any] = {"variant": label or variant, "n_demos": int(n_demos), "source": str(ours_path),
                                "episodes": 0, "augmented": 0, "frames_new": 0}
     with ReplayBuffer.open(ours_path) as src:
         ends = np.asarray(src.episode_ends)
@@ -209,6 +211,21 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
             buf.root.attrs["T_cam_tcp"] = src.root.attrs["T_cam_tcp"]
         buf.save(out_path)  # atomic (temporary path, then rename)
     return summary
+
+
+def subset_variant(variant_path: str | os.PathLike, out_path: str | os.PathLike, n_demos: int, *,
+                   progress: bool = True) -> dict[str, Any]:
+    """The same variant for the first ``n_demos`` source demos only, from a variant dataset of more demos: every
+    episode of those demos copied as stored (no rendering again: a smaller data size shares the larger one's
+    episodes, as the study's data sizes do)."""
+    from umi_aug.data import ReplayBuffer
+
+    with ReplayBuffer.open(variant_path) as b:
+        attrs = dict(b.root.attrs.get(VARIANT_ATTR, {}))
+    if "variant" not in attrs:
+        raise AugmentError(f"{variant_path}: no root attribute '{VARIANT_ATTR}' (not written by write_variant)")
+    summary = write_variant("ours", variant_path, out_path, n_demos, progress=progress, label=attrs["variant"])
+    return summary | {"subset_of": str(variant_path)}
 
 
 def _spartn_episodes(buf, src, e: int, rows: np.ndarray, splice: int, cfg: SpartnConfig, render_new,

@@ -167,7 +167,12 @@ def _step_variant(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
     from umi_aug.augment.square_source import SquareInput, gt_render_function, prepare_square, spartn_render_function
     from umi_aug.augment.square_variants import SpartnConfig, write_variant
 
+    from umi_aug.augment.square_variants import subset_variant
+
     v, n = cell["variant"], cell["n"]
+    big = {**cell, "n": max(cfg.sizes), "name": cell_name(v, max(cfg.sizes))}
+    if cell["theta"] is None and n < big["n"] and variant_path(cfg, big).exists():
+        return subset_variant(variant_path(cfg, big), variant_path(cfg, cell), n)  # same episodes, not re-rendered
     ours = export_path(cfg, cell["theta"])
     render_new, close = None, None
     if v in ("gt_render", "spartn"):
@@ -249,7 +254,7 @@ def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eva
         steps.append(("export", lambda: _step_export(cfg, None)))
         for th in sorted({c["theta"] for c in cells if c["theta"] is not None}):
             steps.append((f"export_theta{th:g}", lambda th=th: _step_export(cfg, th)))
-        for c in cells:
+        for c in sorted(cells, key=lambda c: -c["n"]):  # largest first: smaller sizes are cut from it
             steps.append((f"variant/{c['name']}", lambda c=c: _step_variant(cfg, c)))
     if "train" in phases:
         for c in cells:
