@@ -147,6 +147,63 @@ def startup(demo: Path, assets, context: str) -> dict:
     return res
 
 
+class _Timed:
+    """``ds[idx[i]]`` plus ``"t"`` = [wall s, CPU s of the process] spent in ``__getitem__`` (measured where it runs:
+    in a worker, the worker's own CPU time)."""
+
+    def __init__(self, ds, idx: list[int]) -> None:
+        self.ds, self.idx = ds, idx
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def __getitem__(self, i: int) -> dict:
+        import torch
+
+        t0, c0 = time.perf_counter(), time.process_time()
+        s = self.ds[self.idx[i]]
+        s["t"] = torch.tensor([time.perf_counter() - t0, time.process_time() - c0], dtype=torch.float64)
+        return s
+
+
+def scaling(demo: Path, assets, workers: list[int], samples: int, batch: int, context: str, rounds: int) -> dict:
+    """Steady state of the new paths alone: plans pre-filled on disk, ONE persistent loader per worker count, an
+    untimed warm-up epoch (worker start), then a timed epoch over ``samples`` slots; interleaved over ``rounds``.
+    Returns ``{workers: [samples/s per round]}`` and the in-process CPU seconds per sample (0 workers)."""
+    import torch
+
+    from umi_aug.policy.workspace import make_loader
+
+    out: dict = {"rates": {w: [] for w in workers}, "cpu_s_per_sample": [], "item_cpu_s": {w: [] for w in workers},
+                 "item_wall_s": {w: [] for w in workers}}
+    with tempfile.TemporaryDirectory() as tmp:
+        ds = _datasets(demo, assets, "new", Path(tmp) / "plans", 1000)
+        n0 = len(ds.original)
+        sub = _Timed(ds, list(range(n0, n0 + samples)))
+        for i in range(len(sub)):  # fill the plan cache (and warm this process)
+            ds.planned(*ds.slot(i)[:3])
+        for _ in range(rounds):
+            for w in workers:
+                loader = make_loader(sub, batch, True, seed=7, num_workers=w, persistent=w > 0,
+                                     context=context if w else None)
+                if w:
+                    for _b in loader:  # warm-up epoch: worker start, scene + kernel load
+                        pass
+                    loader.sampler.set_epoch(1)
+                t0, c0 = time.perf_counter(), time.process_time()
+                ts = [b["t"] for b in loader]
+                wall = time.perf_counter() - t0
+                t = torch.cat(ts)
+                n = len(t)
+                out["item_wall_s"][w].append(float(t[:, 0].mean()))
+                out["item_cpu_s"][w].append(float(t[:, 1].mean()))
+                out["rates"][w].append(n / wall)
+                if w == 0:
+                    out["cpu_s_per_sample"].append((time.process_time() - c0) / n)
+                del loader
+    return out
+
+
 def model_16(rows: list[dict]) -> dict:
     """16-core estimate from the steady epoch: per-sample CPU seconds ``c`` (0 workers, 1 thread: process CPU time,
     which a shared machine's load stretches far less than wall time) → ``15 / c`` on 15 worker cores (one core
@@ -174,6 +231,7 @@ def main() -> None:
     ap.add_argument("--workers", default="0,1,2")
     ap.add_argument("--context", default="spawn", choices=["spawn", "fork"])
     ap.add_argument("--n-aug-per-demo", type=int, default=1000)
+    ap.add_argument("--scaling-samples", type=int, default=160, help="steady-state scaling epoch (0: skip)")
     ap.add_argument("--out", default=None, help="JSON results (default: <demo>/dataset_benchmark.json)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
@@ -198,6 +256,8 @@ def main() -> None:
                       f"{e0['first_batch_s']:.1f} s), epoch1 {e1['samples_per_s']:5.1f}/s (first batch "
                       f"{e1['first_batch_s']:.1f} s)  load {r['load']}", flush=True)
     st = startup(demo, assets, args.context)
+    sc = (scaling(demo, assets, workers, args.scaling_samples, args.batch, args.context, args.rounds)
+          if args.scaling_samples else None)
 
     print(f"\nsamples/s (mean over {args.rounds} rounds; ratio = new / reference of the same round, averaged)")
     head = f"{'workers':>8} {'epoch':>6} {'reference':>10} {'new':>8} {'ratio':>7}"
@@ -222,13 +282,34 @@ def main() -> None:
     print(f"\nworker start-up ({args.context}): first worker to its first batch {st['first_worker_s']:.2f} s, "
           f"a second one {st['second_worker_s']:.2f} s; the sample itself {st['sample_in_process_s']:.2f} s in "
           f"process")
+    if sc:
+        r0 = sum(sc["rates"][workers[0]]) / len(sc["rates"][workers[0]])
+        print(f"\nsteady-state scaling, new paths, {args.scaling_samples} samples, persistent {args.context} workers, "
+              f"plans on disk (per round; efficiency = rate / (max(workers, 1) × rate at {workers[0]} workers)):")
+        for w in workers:
+            rs = sc["rates"][w]
+            m_ = sum(rs) / len(rs)
+            cw = sum(sc["item_cpu_s"][w]) / len(rs)
+            ww = sum(sc["item_wall_s"][w]) / len(rs)
+            print(f"  {w} workers: " + ", ".join(f"{r:.1f}" for r in rs) + f" samples/s; mean {m_:.1f}, "
+                  f"efficiency {m_ / (max(w, 1) * r0):.2f}; per sample where it runs: {cw * 1000:.0f} ms CPU, "
+                  f"{ww * 1000:.0f} ms wall (CPU/wall {cw / ww:.2f} = the core share it got)")
+        if sc["cpu_s_per_sample"]:
+            c = sum(sc["cpu_s_per_sample"]) / len(sc["cpu_s_per_sample"])
+            eff = (sum(sc["rates"][max(workers)]) / len(sc["rates"][max(workers)])) / (max(max(workers), 1) * r0)
+            wmax = max(workers)
+            cw = sum(sc["item_cpu_s"][wmax]) / len(sc["item_cpu_s"][wmax])
+            print(f"  CPU per sample: {c * 1000:.0f} ms in process (0 workers, incl. collation), {cw * 1000:.0f} ms "
+                  f"inside a worker ({wmax} workers) → 16 cores (15 worker cores, CPU-bound, the trainer on the 16th): "
+                  f"{15 / cw:.0f} samples/s; on 2 free cores: {2 / cw:.0f}. Wall-clock efficiency measured on this "
+                  f"shared machine: {eff:.2f} (→ {15 / c * eff:.0f} on 16 cores if it held there)")
     m = model_16(rows) if 0 in workers and 2 in workers else {}
     for v, d in m.items():
         print(f"16-core model {v:<9}: {d['cpu_s_per_sample'] * 1000:.0f} ms CPU per sample → {d['ideal_16']:.0f} "
               f"samples/s on 15 worker cores at full efficiency; × the efficiency measured here "
               f"({d['efficiency_2w']:.2f}) → {d['model_16']:.0f}")
     out = Path(args.out) if args.out else demo / "dataset_benchmark.json"
-    out.write_text(json.dumps({"rows": rows, "startup": st, "model_16": m, "args": vars(args)}, indent=1))
+    out.write_text(json.dumps({"rows": rows, "startup": st, "scaling": sc, "model_16": m, "args": vars(args)}, indent=1))
     print(f"\n(results: {out})")
 
 
