@@ -105,3 +105,18 @@ def test_expert_solves_a_few_seeds(env, rng):
     assert ok.dones[-1] == 1 and ok.dones[:-1].sum() == 0 and ok.rewards[-1] > 0
     assert ok.states.shape[0] == ok.actions.shape[0] == len(ok)
     assert np.all(np.abs(ok.actions) <= 1.0)
+
+
+def test_model_xml_survives_other_model_loads(env):
+    """robomimic's ``model_file`` must be this env's MJCF even after another model was loaded in the process
+    (MuJoCo's ``mj_saveLastXML`` is process-wide: a tabletop scene loaded later used to leak into the demos)."""
+    import mujoco
+
+    xml = env.model_xml()
+    assert "square" in xml.lower() and "nut" in xml.lower()
+    mujoco.MjModel.from_xml_string("<mujoco model='unrelated'><worldbody/></mujoco>")
+    assert env.model_xml() == xml
+    state = env.get_state()
+    env.reset_to(state, model_xml=xml)  # reloading from the stored XML gives the same model
+    assert env.model_xml() == xml and env.model.nbody > 2
+    np.testing.assert_allclose(env.get_state(), state, atol=1e-9)

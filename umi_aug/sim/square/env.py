@@ -107,6 +107,9 @@ class SquareEnv:
         self.image_size = image_size
         self._camera: WristFisheyeCamera | None = None
         self._camera_model = None
+        # MuJoCo's mj_saveLastXML writes the process-wide last loaded XML, which any other model load (another
+        # env, a tabletop scene) replaces: keep the MJCF this env compiled instead
+        self._xml: str = self.rs.model.get_xml()
         self._fix_model()
 
     # ------------------------------------------------------------------ raw MuJoCo access
@@ -153,6 +156,8 @@ class SquareEnv:
         if model_xml is not None:
             state["model"] = model_xml
         self.env.reset_to(state)
+        if model_xml is not None:
+            self._xml = model_xml
         self._fix_model()
         return self.observation()
 
@@ -169,8 +174,12 @@ class SquareEnv:
         return np.asarray(self.rs.sim.get_state().flatten(), dtype=np.float64)
 
     def model_xml(self) -> str:
-        """The current MJCF (robomimic stores it per demo as ``model_file``)."""
-        return self.rs.sim.model.get_xml()
+        """The MJCF the current model was compiled from (robomimic stores it per demo as ``model_file``).
+
+        Not ``sim.model.get_xml()``: that is MuJoCo's process-wide last loaded XML, which any later model load in
+        the same process (another env, a tabletop scene) replaces.
+        """
+        return self._xml
 
     def is_success(self) -> bool:
         """robosuite's task success (nut on the square peg, gripper released)."""
