@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
@@ -51,3 +52,54 @@ def demo_run(tmp_path_factory):
     with contextlib.redirect_stdout(printed):
         rc = main(args)
     return SimpleNamespace(out=out, args=args, rc=rc, printed=printed.getvalue())
+
+
+#: the shared square demo (tests/sim square data, tests/augment square source): seed and image side
+SQUARE_DEMO_SEED = 7
+SQUARE_DEMO_SIZE = 84
+
+
+@pytest.fixture(scope="session")
+def square_demo(tmp_path_factory):
+    """One rendered scripted-expert square demo (``umi-aug square-demos --n 1``, seed 7, 84²; ~20 s on 2 cores),
+    generated once per test session: ``(folder, report)``. Tests only read it (a resumed generate writes nothing)."""
+    pytest.importorskip("robosuite")
+    from umi_aug.sim.square.generate import DemoConfig, generate_demos
+
+    out = tmp_path_factory.mktemp("square_demos")
+    report = generate_demos(out, DemoConfig(n=1, image_size=SQUARE_DEMO_SIZE, workers=1,
+                                            start_seed=SQUARE_DEMO_SEED))
+    return out, report
+
+
+# --- the small synthetic UMI session shared by tests/augment and tests/policy (settings: tests/augment/conftest.py)
+@pytest.fixture(scope="session")
+def aug_session(tmp_path_factory):
+    """Synthetic UMI session: 30 scan frames + 1 demo at 320x240, dataset at 64² (~20 s on 2 cores)."""
+    if importlib.util.find_spec("mujoco") is None:  # MuJoCo must be imported through umi_aug.sim.gl
+        pytest.skip("mujoco (sim extra) not installed")
+    from umi_aug.sim.gl import import_mujoco
+
+    import_mujoco()
+    from umi_aug.sim.session import make_session
+
+    out = tmp_path_factory.mktemp("aug_session") / "session"
+    from tests.augment.conftest import SIZE
+
+    make_session(out, 0, n_demos=1, scan_frames=30, policy_size=SIZE, benchmark_frames=0, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def aug_work(tmp_path_factory):
+    return tmp_path_factory.mktemp("aug_work")
+
+
+@pytest.fixture(scope="session")
+def aug_assets(aug_session, aug_work):
+    """All session stages of the small config (reconstruction ~25 s, the rest a few seconds)."""
+    from umi_aug.augment import prepare_session
+
+    from tests.augment.conftest import small_config
+
+    return prepare_session(aug_session, aug_work, small_config(), progress=False)

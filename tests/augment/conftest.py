@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 
-import pytest
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
@@ -28,29 +26,5 @@ def small_config(**kw):
     return AugmentConfig(**base)
 
 
-@pytest.fixture(scope="session")
-def aug_session(tmp_path_factory):
-    """Synthetic UMI session: 30 scan frames + 1 demo at 320x240, dataset at 64² (~20 s on 2 cores)."""
-    if importlib.util.find_spec("mujoco") is None:  # MuJoCo must be imported through umi_aug.sim.gl
-        pytest.skip("mujoco (sim extra) not installed")
-    from umi_aug.sim.gl import import_mujoco
-
-    import_mujoco()
-    from umi_aug.sim.session import make_session
-
-    out = tmp_path_factory.mktemp("aug_session") / "session"
-    make_session(out, 0, n_demos=1, scan_frames=30, policy_size=SIZE, benchmark_frames=0, progress=False)
-    return out
-
-
-@pytest.fixture(scope="session")
-def aug_work(tmp_path_factory):
-    return tmp_path_factory.mktemp("aug_work")
-
-
-@pytest.fixture(scope="session")
-def aug_assets(aug_session, aug_work):
-    """All session stages of the small config (reconstruction ~25 s, the rest a few seconds)."""
-    from umi_aug.augment import prepare_session
-
-    return prepare_session(aug_session, aug_work, small_config(), progress=False)
+# the session fixtures built from it (aug_session, aug_work, aug_assets) live in tests/conftest.py so that tests
+# outside tests/augment (tests/policy) share the same instances instead of building them again

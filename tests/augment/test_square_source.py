@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-pytestmark = pytest.mark.slow  # one rendered expert demo (~20 s) + a tiny scene model + 3 planned episodes
+pytestmark = pytest.mark.slow  # one rendered expert demo (shared, ~20 s) + a tiny scene model + 3 planned episodes
 
 SIZE = 84
 TINY_SCENE = {"n_scan_views": 6, "static_iterations": 40, "static_max_gaussians": 3000, "n_nut_views": 4,
@@ -18,15 +18,13 @@ TINY_SCENE = {"n_scan_views": 6, "static_iterations": 40, "static_max_gaussians"
 
 
 @pytest.fixture(scope="module")
-def square_export(tmp_path_factory):
+def square_export(tmp_path_factory, square_demo):
     from umi_aug.augment import export
     from umi_aug.augment.config import AugmentConfig
     from umi_aug.augment.square_source import SquareInput, SquareSource
-    from umi_aug.sim.square.generate import DemoConfig, generate_demos
 
     root = tmp_path_factory.mktemp("square")
-    demos = root / "demos"
-    generate_demos(demos, DemoConfig(n=1, image_size=SIZE, workers=1, start_seed=3))
+    demos = square_demo[0]  # the session's shared demo (tests/conftest.py), read only
     cfg = AugmentConfig(mode="freespace", n_per_demo=3, image_size=SIZE, include_original=True, workers=1)
     out = root / "aug.zarr.zip"
     summary = export(demos, out, cfg, work_dir=root / "work", progress=False, pictures=False,

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.augment.conftest import SIZE, aug_assets, aug_session, aug_work  # noqa: F401 (fixtures)
+from tests.augment.conftest import SIZE  # fixtures aug_session/aug_assets: tests/conftest.py (shared)
 
 
 def _task(**kw):
@@ -24,7 +24,7 @@ def _task(**kw):
 
 
 @pytest.fixture(scope="module")
-def noisy_original(aug_session):  # noqa: F811
+def noisy_original(aug_session):
     from umi_aug.policy.dataset import UmiPolicyDataset
 
     return UmiPolicyDataset(aug_session / "dataset.zarr.zip", _task(), "train")
@@ -66,7 +66,7 @@ def test_composite_band_equals_composite_overlay(rng):
         composite_band(np.zeros((S, S, 3), np.uint8), np.zeros((S, S - 1, 3), np.uint8), alpha)
 
 
-def test_read_rows_equals_original_frames(aug_assets, rng):  # noqa: F811
+def test_read_rows_equals_original_frames(aug_assets, rng):
     from umi_aug.policy.augmented_paths import read_rows
 
     n = aug_assets.original.get_episode_slice(0).stop - aug_assets.original.get_episode_slice(0).start
@@ -74,7 +74,7 @@ def test_read_rows_equals_original_frames(aug_assets, rng):  # noqa: F811
         np.testing.assert_array_equal(read_rows(aug_assets, 0, rows), aug_assets.original_frames(0, rows))
 
 
-def test_sample_frames_equal_render_episode_frames(aug_assets):  # noqa: F811
+def test_sample_frames_equal_render_episode_frames(aug_assets):
     from umi_aug.augment import plan_episode, render_episode_frames
     from umi_aug.errors import AugmentError
     from umi_aug.policy.augmented_paths import sample_frames
@@ -92,7 +92,7 @@ def test_sample_frames_equal_render_episode_frames(aug_assets):  # noqa: F811
 
 
 # ------------------------------------------------------------------------------------------- whole samples
-def test_fast_dataset_gives_the_reference_samples(noisy_original, aug_assets, tmp_path, rng):  # noqa: F811
+def test_fast_dataset_gives_the_reference_samples(noisy_original, aug_assets, tmp_path, rng):
     """Same indices and seeds → identical tensors (start-pose noise from the slot included), for the fast paths
     together and each alone; a second dataset (empty process cache) reads every plan from disk."""
     ref = _dataset(noisy_original, aug_assets, fast_paths=())
@@ -114,7 +114,7 @@ def test_fast_dataset_gives_the_reference_samples(noisy_original, aug_assets, tm
         _dataset(noisy_original, aug_assets, fast_paths=("warp",))
 
 
-def test_plan_disk_cache_is_keyed_by_content(aug_assets, tmp_path):  # noqa: F811
+def test_plan_disk_cache_is_keyed_by_content(aug_assets, tmp_path):
     import dataclasses
 
     from umi_aug.augment import plan_episode
@@ -158,7 +158,7 @@ def test_epoch_sampler_gives_the_per_epoch_loader_order():
     assert list(EpochSampler(5, 0, shuffle=False)) == [0, 1, 2, 3, 4]
 
 
-def test_persistent_workers_follow_epochs_and_match_the_reference(noisy_original, aug_assets, tmp_path):  # noqa: F811
+def test_persistent_workers_follow_epochs_and_match_the_reference(noisy_original, aug_assets, tmp_path):
     """2 persistent spawned workers over 2 epochs (the epoch reaches them through shared memory) give exactly the
     batches of the reference: a new 0-worker loader per epoch with the reference paths. (Forked workers of a
     process that has rendered deadlock in numba's thread pool: the workspace spawns them, ``loader_context``.)"""

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("robosuite")
-# one full rendered expert demo (~15 s on 2 idle cores) plus its conversion
+# one full rendered expert demo (~15 s on 2 idle cores, shared with tests/augment) plus its conversion
 pytestmark = pytest.mark.slow
 
 from umi_aug.sim.square.env import FISHEYE_KEY, LOW_DIM_KEYS  # noqa: E402
@@ -19,10 +19,9 @@ SIZE = 84
 
 
 @pytest.fixture(scope="module")
-def demos(tmp_path_factory):
-    out = tmp_path_factory.mktemp("square_demos")
-    report = generate_demos(out, DemoConfig(n=1, image_size=SIZE, workers=1, start_seed=7))
-    return out, report
+def demos(square_demo):
+    """The session's shared demo (tests/conftest.py: seed 7, 84²)."""
+    return square_demo
 
 
 def test_generate_writes_both_formats(demos):

@@ -12,7 +12,8 @@ checkpoint / results file next time):
    extra cone angle of the sweep (its data size only);
 2. ``variant/<v>_n<n>`` — the training datasets (:func:`~umi_aug.augment.square_variants.write_variant`);
 3. ``train/<cell>`` — ``train/train.py`` on each dataset (subprocess; resumes from ``latest.ckpt``);
-4. ``eval/<cell>`` — ``eval/eval_sim.py`` on the fixed configuration subset (subprocess; resumes);
+4. ``eval/<cell>`` — ``eval/eval_sim.py`` on the fixed configuration subset (subprocess; resumes); steps 3 and 4
+   run cell by cell (:func:`study_cells` order), so a time slice leaves whole cells behind;
 5. ``report`` — ``<report_md>`` (tables, commands, wall times) and ``<report_png>`` (success vs data size per
    variant with Wilson 95 % intervals; the cone-angle sweep; sub-goals), plus the rendering fidelity of ``ours``
    vs ``gt_render`` at the augmented poses (PSNR / SSIM, median and 5th percentile).
@@ -108,9 +109,11 @@ def cell_name(variant: str, n: int, theta: float | None = None) -> str:
 
 
 def study_cells(cfg: StudyConfig) -> list[dict[str, Any]]:
-    """Every (variant, size[, θ]) the recipe trains and evaluates, main grid first, then the sweep."""
-    cells = [{"variant": v, "n": int(n), "theta": None, "name": cell_name(v, n)} for n in cfg.sizes
-             for v in cfg.variants]
+    """Every (variant, size[, θ]) the recipe trains and evaluates, in the order they run: the main grid variant by
+    variant in the recipe's order (each over every data size, so the first variants' curves complete first), then
+    the sweep."""
+    cells = [{"variant": v, "n": int(n), "theta": None, "name": cell_name(v, n)} for v in cfg.variants
+             for n in cfg.sizes]
     for th in cfg.sweep_thetas:
         if float(th) != float(cfg.theta_deg) and "ours" in cfg.variants:
             cells.append({"variant": "ours", "n": int(cfg.sweep_size), "theta": float(th),
@@ -256,11 +259,11 @@ def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eva
             steps.append((f"export_theta{th:g}", lambda th=th: _step_export(cfg, th)))
         for c in sorted(cells, key=lambda c: -c["n"]):  # largest first: smaller sizes are cut from it
             steps.append((f"variant/{c['name']}", lambda c=c: _step_variant(cfg, c)))
-    if "train" in phases:
-        for c in cells:
+    # cell by cell (train, then evaluate it) so every time slice leaves finished cells for the report
+    for c in cells:
+        if "train" in phases:
             steps.append((f"train/{c['name']}", lambda c=c: _step_train(cfg, c)))
-    if "eval" in phases:
-        for c in cells:
+        if "eval" in phases:
             steps.append((f"eval/{c['name']}", lambda c=c: _step_eval(cfg, c)))
     for name, fn in tqdm(steps, desc="square study", unit="step"):
         if not step(name, fn) and over_budget():

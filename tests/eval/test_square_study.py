@@ -1,0 +1,156 @@
+"""The square study driver (issue #15): recipes, cells, step order, resume, time slices, failures, the report.
+
+The steps themselves (export, variants, train.py, eval_sim.py) are tested where they live; here they are replaced by
+recorders so the driver's bookkeeping is checked in well under a second per test.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from umi_aug.eval import square_study as st
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _cfg(tmp_path: Path, *over: str) -> st.StudyConfig:
+    return st.load_recipe(ROOT / "configs" / "square_study" / "cpu.yaml",
+                          [f"out_dir={tmp_path / 'out'}", f"report_md={tmp_path / 'r.md'}",
+                           f"report_png={tmp_path / 'r.png'}", *over])
+
+
+def test_recipes_load_and_bad_keys_are_named(tmp_path):
+    cpu = _cfg(tmp_path)
+    assert cpu.sizes == [10, 25] and cpu.n_per_demo == 20 and cpu.theta_deg == 50.0
+    assert st.expected_rollouts(cpu) == 200  # the issue's >= 200 configurations
+    paper = st.load_recipe(ROOT / "configs" / "square_study" / "paper.yaml")
+    assert paper.sizes == [30, 50, 100, 150, 200] and st.expected_rollouts(paper) == 1000
+    with pytest.raises(st.StudyError, match="no_such_key"):
+        _cfg(tmp_path, "no_such_key=3")
+    with pytest.raises(st.StudyError, match="'magic'"):
+        _cfg(tmp_path, "variants=[none,magic]")
+    with pytest.raises(st.StudyError, match="sizes"):
+        _cfg(tmp_path, "sizes=[0]")
+    assert st.expected_rollouts(_cfg(tmp_path, "eval_configs='3,7,9'")) == 3
+
+
+def test_cells_main_grid_then_sweep(tmp_path):
+    cells = st.study_cells(_cfg(tmp_path))
+    names = [c["name"] for c in cells]
+    assert names[:10] == [f"{v}_n{n}" for v in ("none", "ours", "gt_render", "action_only", "spartn")
+                          for n in (10, 25)]
+    # the sweep: every θ but the main one (its cell is ours_n10 of the grid), at the sweep size
+    assert names[10:] == ["ours_n10_theta20", "ours_n10_theta30", "ours_n10_theta40", "ours_n10_theta60"]
+    assert len(set(names)) == len(names)
+    assert st.study_cells(_cfg(tmp_path, "variants=[none,spartn]"))[-1]["name"] == "spartn_n25"  # no ours: no sweep
+
+
+def _fake_steps(monkeypatch, calls: list[str], fail: str | None = None, unfinished_eval: str | None = None):
+    def export(cfg, theta):
+        calls.append(f"export_theta{theta:g}" if theta is not None else "export")
+        return {"n_augmented": 3}
+
+    def variant(cfg, cell):
+        calls.append(f"variant/{cell['name']}")
+        if cell["name"] == fail:
+            raise st.StudyError("boom")
+        return {}
+
+    def train(cfg, cell):
+        calls.append(f"train/{cell['name']}")
+        return {}
+
+    def evaluate(cfg, cell):
+        calls.append(f"eval/{cell['name']}")
+        return {"n": 5, "_done": cell["name"] != unfinished_eval}
+
+    monkeypatch.setattr(st, "_step_export", export)
+    monkeypatch.setattr(st, "_step_variant", variant)
+    monkeypatch.setattr(st, "_step_train", train)
+    monkeypatch.setattr(st, "_step_eval", evaluate)
+
+
+def test_step_order_resume_and_unfinished_eval(tmp_path, monkeypatch):
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[30,50]")
+    calls: list[str] = []
+    _fake_steps(monkeypatch, calls, unfinished_eval="ours_n25")
+    state = st.run_study(cfg, ("data", "train", "eval"))
+    assert calls == ["export", "export_theta30",
+                     "variant/none_n25", "variant/ours_n25", "variant/none_n10", "variant/ours_n10",
+                     "variant/ours_n10_theta30",
+                     "train/none_n10", "eval/none_n10", "train/none_n25", "eval/none_n25",
+                     "train/ours_n10", "eval/ours_n10", "train/ours_n25", "eval/ours_n25",
+                     "train/ours_n10_theta30", "eval/ours_n10_theta30"]
+    assert state["steps"]["export"]["n_augmented"] == 3 and state["steps"]["export"]["seconds"] >= 0
+    assert not state["steps"]["eval/ours_n25"]["done"]  # fewer rollouts than the subset: not done
+    saved = json.loads((cfg.out / "study_state.json").read_text())
+    assert saved["steps"].keys() == state["steps"].keys()
+    calls.clear()
+    st.run_study(cfg, ("data", "train", "eval"))
+    assert calls == ["eval/ours_n25"]  # a rerun does only what is not done
+
+
+def test_budget_stops_before_the_next_step_and_failures_are_recorded(tmp_path, monkeypatch):
+    import types
+
+    calls: list[str] = []
+    _fake_steps(monkeypatch, calls)
+    clock = [0.0]  # a fake clock: the export step takes 2 minutes
+    monkeypatch.setattr(st, "time", types.SimpleNamespace(perf_counter=lambda: clock[0], time=lambda: 0.0))
+    real_export = st._step_export
+
+    def slow_export(cfg, theta):
+        clock[0] += 120.0
+        return real_export(cfg, theta)
+
+    monkeypatch.setattr(st, "_step_export", slow_export)
+    cfg = _cfg(tmp_path, "variants=[none]", "sweep_thetas=[]", "budget_min=1")
+    st.run_study(cfg, ("data", "train"))
+    assert calls == ["export"]  # the first step runs, none starts after the 1-minute budget
+    monkeypatch.undo()
+    calls.clear()
+    _fake_steps(monkeypatch, calls, fail="none_n25")
+    with pytest.raises(st.StudyError, match="variant/none_n25.*boom"):
+        st.run_study(_cfg(tmp_path, "variants=[none]", "sweep_thetas=[]"), ("data",))
+    row = json.loads((cfg.out / "study_state.json").read_text())["steps"]["variant/none_n25"]
+    assert row["done"] is False and row["error"] == "boom"
+
+
+def _write_results(d: Path, rows: list[dict]) -> None:
+    d.mkdir(parents=True)
+    (d / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def test_report_marks_unevaluated_cells_and_counts_what_was_recorded(tmp_path, rng):
+    from umi_aug.eval.square_report import cell_metrics, write_report
+    from umi_aug.eval.stats import wilson_interval
+
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[40,50]")
+    cells = st.study_cells(cfg)
+    n = 20
+    succ = rng.random(n) < 0.3
+    rows = [{"config": i, "success": bool(s), "pregrasp_reached": bool(s or i % 2), "lifted": bool(s),
+             "inserted": bool(s), "collision_table": i % 3 == 0, "collision_peg": False,
+             "pregrasp_min_pos_err_m": 0.01 * (i + 1), "pregrasp_min_rot_err_deg": float(i),
+             "max_nut_rise_m": 0.01 if s else 0.0} for i, s in enumerate(succ)]
+    _write_results(st.eval_dir(cfg, cells[0]), rows)
+    _write_results(st.eval_dir(cfg, {"name": "ours_n10_theta40"}), rows[:5])
+    m = cell_metrics(st.eval_dir(cfg, cells[0]))
+    k = int(succ.sum())
+    assert m["n"] == n and m["success"]["count"] == k
+    assert m["success"]["wilson95"] == pytest.approx(list(wilson_interval(k, n)))
+    assert m["closest_pregrasp_mm_median"] == pytest.approx(1000 * np.median(0.01 * np.arange(1, n + 1)))
+    assert m["nut_moved"] == k
+    assert cell_metrics(st.eval_dir(cfg, cells[1])) is None
+    rep = write_report(cfg, cells, {"steps": {"train/none_n10": {"seconds": 120.0, "done": True}}})
+    md = Path(cfg.report_md).read_text()
+    assert f"| none | 10 | {n} | {100 * k / n:.1f} [" in md
+    assert md.count("not evaluated yet") == 3 + 1  # none_n25, ours_n10, ours_n25; sweep θ = 50 (ours_n10)
+    assert "| 40 | 5 |" in md and "| train/none_n10 | 2.0 |" in md
+    assert Path(cfg.report_png).stat().st_size > 10_000
+    assert rep["metrics"]["ours_n25"] is None and rep["fidelity"] is None
+    assert json.loads((cfg.out / "report.json").read_text())["metrics"]["none_n10"]["n"] == n
