@@ -284,3 +284,52 @@ def test_subset_of_a_variant_equals_the_variant_of_fewer_demos(fake_export, tmp_
         for k in a[2]:
             np.testing.assert_array_equal(a[2][k], b[2][k])
         assert _stored_chunks(direct) == _stored_chunks(cut)
+
+
+def test_frames_sheet_pairs_the_right_frames(fake_export, tmp_path):
+    """The study's picture of what each variant trains on: the panels are the datasets' own frames, and each SPARTN
+    perturbed frame is shown beside the source frame it perturbs (checked through the stored poses)."""
+    from umi_aug.augment.square_variants import SpartnConfig, spartn_perturbation, write_variant
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.eval.square_report import frames_sheet_panels, write_frames_sheet
+    from umi_aug.eval.square_study import StudyConfig
+    from umi_aug.geometry import pos_rotvec_to_pose
+    from umi_aug.geometry.umi import camera_poses_from_tcp_poses
+
+    src, demos = fake_export
+    cfg = StudyConfig(out_dir=str(tmp_path / "study"), sizes=[3], report_png=str(tmp_path / "fig.png"))
+    data = cfg.out / "data"
+    data.mkdir(parents=True)
+    sp = SpartnConfig(stride=3, per_step=2, seed=4)
+    const = {"gt_render": 200, "spartn": 50}
+    assert frames_sheet_panels(cfg) is None  # nothing written yet
+    for v in ("ours", "gt_render", "action_only", "spartn"):
+        write_variant(v, src, data / f"{v}_n3.zarr.zip", 3, spartn=sp, progress=False,
+                      render_new=None if v in ("ours", "action_only") else
+                      (lambda e, info, c=const[v]: np.full((info.get("n_new", len(info["T_world_cam"])), S, S, 3), c,
+                                                           np.uint8)))
+    panels = frames_sheet_panels(cfg)
+    assert len(panels) == 4  # 3 demos with augmented episodes + the SPARTN row
+    for row in panels[:3]:
+        gt = [p for p in row if p["title"].endswith("gt_render")]
+        assert len(gt) == 2 and all(np.abs(p["image"].astype(int) - 200).max() <= 2 for p in gt)  # lossy codec
+    spartn = panels[-1]
+    with ReplayBuffer.open(data / "spartn_n3.zarr.zip") as b, ReplayBuffer.open(src) as s:
+        ends = np.asarray(b.episode_ends)
+        pose = lambda buf, r: camera_poses_from_tcp_poses(pos_rotvec_to_pose(np.concatenate(  # noqa: E731
+            [buf["robot0_eef_pos"][r], buf["robot0_eef_rot_axis_angle"][r]])[None].astype(np.float64)), T_CAM_TCP)[0]
+        s_ends = np.asarray(s.episode_ends)
+        for orig, pert in zip(spartn[0::2], spartn[1::2]):
+            assert orig["kind"] == "original" and pert["kind"] == "perturbed"
+            assert np.abs(pert["image"].astype(int) - 50).max() <= 2
+            d, t, e = orig["demo"], orig["t"], orig["episode"]
+            row0 = int(s_ends[d - 1]) if d else 0
+            np.testing.assert_array_equal(orig["image"], np.asarray(s["camera0_rgb"][row0 + t]))
+            start = int(ends[e - 1]) if e else 0
+            delta = spartn_perturbation(sp, d, t, orig["j"])
+            np.testing.assert_allclose(pose(b, start + sp.obs_horizon - 1), demos[d][0][t] @ delta, atol=2e-5)
+    out = write_frames_sheet(cfg)
+    assert out is not None and out.endswith("fig_frames.jpg")
+    from PIL import Image
+
+    assert Image.open(out).size[0] > 800

@@ -7,6 +7,7 @@ summaries, ``study_state.json`` wall times); cells not evaluated yet are listed 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +15,7 @@ import numpy as np
 
 from umi_aug.io_utils import atomic_write_text
 
-__all__ = ["cell_metrics", "write_report"]
+__all__ = ["cell_metrics", "write_report", "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
 
 METRICS: tuple[str, ...] = ("success", "pregrasp_reached", "lifted", "inserted", "collision_table", "collision_peg")
 
@@ -76,7 +77,8 @@ def write_report(cfg, cells: list[dict[str, Any]], state: dict[str, Any]) -> dic
                                                       "status_counts", "timings_s")} for k, v in exports.items()},
               "steps": state.get("steps", {})}
     atomic_write_text(cfg.out / "report.json", json.dumps(report, indent=1) + "\n")
-    _write_md(cfg, cells, metrics, fid, report["exports"], state)
+    report["frames_sheet"] = write_frames_sheet(cfg)
+    _write_md(cfg, cells, metrics, fid, report["exports"], state, report["frames_sheet"])
     _write_png(cfg, cells, metrics)
     return report
 
@@ -89,7 +91,7 @@ def _recipe_dict(cfg) -> dict[str, Any]:
     return d
 
 
-def _write_md(cfg, cells, metrics, fid, exports, state) -> None:
+def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None) -> None:
     from umi_aug.eval.square_study import eval_command, train_command
 
     L = [f"# Square study — recipe `{cfg.name}`", "",
@@ -138,6 +140,10 @@ def _write_md(cfg, cells, metrics, fid, exports, state) -> None:
               "|---:|---:|---:|---:|---:|",
               f"| {fid['frames']} | {fid['psnr_median']:.2f} | {fid['psnr_p5']:.2f} | {fid['ssim_median']:.3f} | "
               f"{fid['ssim_p5']:.3f} |"]
+    if sheet is not None:
+        rel = os.path.relpath(sheet, Path(cfg.report_md).parent)
+        L += ["", f"![the same augmented episodes in ours, gt_render (|difference| x3) and action_only; SPARTN's "
+                  f"perturbed frames beside the originals]({rel})"]
     L += ["", "## Data generation", "", "| export | episodes | failed jobs | resampled attempts | attempt failures "
           "by reason | plan s | render s | total s |", "|---|---:|---:|---:|---|---:|---:|---:|"]
     for k, e in exports.items():
@@ -208,3 +214,110 @@ def _write_png(cfg, cells, metrics) -> None:
     with atomic_path(p) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
+
+
+def frames_sheet_path(cfg) -> Path:
+    """``<report_png stem>_frames.jpg`` beside the figure."""
+    p = Path(cfg.report_png)
+    return p.with_name(p.stem + "_frames.jpg")
+
+
+def _episode_rows(buf, rec) -> dict[tuple[int, int], np.ndarray]:
+    ends = np.asarray(buf.episode_ends)
+    out = {}
+    for e in range(len(ends)):
+        out.setdefault((int(rec["aug_source_episode"][e]), int(rec["aug_id"][e])), np.arange(ends[e - 1] if e else 0,
+                                                                                             ends[e]))
+    return out
+
+
+def frames_sheet_panels(cfg, n_episodes: int = 4) -> list[list[dict[str, Any]]] | None:
+    """The frames of :func:`write_frames_sheet`, row by row: each panel ``{"image", "title", ...}``. Augmented rows
+    carry ``key`` (source demo, aug id) and ``t``; the SPARTN row pairs each perturbed frame (``kind`` "perturbed",
+    with ``demo``, ``t``, ``episode``) with the source demo's frame ``t`` it perturbs (``kind`` "original"). None
+    when the largest data size's ours / gt_render / action_only / spartn datasets are not all there."""
+    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.augment.square_variants import VARIANT_ATTR
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.eval.square_study import variant_path
+
+    big = max(cfg.sizes)
+    paths = {v: variant_path(cfg, {"name": f"{v}_n{big}"}) for v in ("ours", "gt_render", "action_only", "spartn")}
+    if not all(p.exists() for p in paths.values()):
+        return None
+    recs = {v: read_episode_records(p) for v, p in paths.items()}
+    bufs = {v: ReplayBuffer.open(p) for v, p in paths.items()}
+    try:
+        rows = {v: _episode_rows(bufs[v], recs[v]) for v in paths}
+        img = lambda v, r: np.asarray(bufs[v]["camera0_rgb"][int(r)])  # noqa: E731
+        gt = recs["gt_render"]
+        splice = {(int(gt["aug_source_episode"][e]), int(gt["aug_id"][e])): int(gt["aug_splice_index"][e])
+                  for e in range(len(gt["aug_id"]))}
+        shared = sorted(k for k in rows["gt_render"] if k[1] >= 0 and k in rows["ours"] and k in rows["action_only"])
+        by_demo: dict[int, tuple[int, int]] = {}
+        for k in shared:
+            by_demo.setdefault(k[0], k)
+        picks = list(by_demo.values())[:: max(1, len(by_demo) // n_episodes)][:n_episodes]
+        panels: list[list[dict[str, Any]]] = []
+        for k in picks:
+            row = []
+            for t in (0, max(1, splice[k] // 2)):
+                a, g, o = (img(v, rows[v][k][t]) for v in ("ours", "gt_render", "action_only"))
+                diff = np.clip(3.0 * np.abs(a.astype(np.float32) - g.astype(np.float32)), 0, 255).astype(np.uint8)
+                for im, name in ((a, "ours"), (g, "gt_render"), (diff, "|ours-gt| x3"), (o, "action_only")):
+                    row.append({"image": im, "title": f"demo {k[0]} aug {k[1]} t={t}: {name}", "key": k, "t": t})
+            panels.append(row)
+        # SPARTN: short episode i of a demo perturbs demo frame t = To-1 + (i // per_step)*stride (its frame To-1)
+        sp = dict(bufs["spartn"].root.attrs.get(VARIANT_ATTR, {})).get("spartn") or {}
+        To, stride, per = int(sp.get("obs_horizon", 2)), int(sp.get("stride", 2)), int(sp.get("per_step", 1))
+        rs = recs["spartn"]
+        short = [e for e in range(len(rs["aug_id"])) if int(rs["aug_id"][e]) == -2]
+        ends = np.asarray(bufs["spartn"].episode_ends)
+        row = []
+        for e in short[:: max(1, len(short) // n_episodes)][:n_episodes]:
+            d = int(rs["aug_source_episode"][e])
+            before = sum(1 for f in short if f < e and int(rs["aug_source_episode"][f]) == d)
+            t = To - 1 + stride * (before // per)
+            start = int(ends[e - 1]) if e else 0
+            row.append({"image": img("spartn", rows["spartn"][(d, -1)][t]), "title": f"demo {d} t={t}: original",
+                        "kind": "original", "demo": d, "t": t, "episode": e, "j": before % per})
+            row.append({"image": img("spartn", start + To - 1), "title": "spartn perturbed", "kind": "perturbed",
+                        "demo": d, "t": t, "episode": e, "j": before % per})
+        panels.append(row)
+        return panels
+    finally:
+        for b in bufs.values():
+            b.close()
+
+
+def write_frames_sheet(cfg, n_episodes: int = 4) -> str | None:
+    """What the policies see: the same augmented episodes' frames in ``ours`` (3DGS + overlay), ``gt_render`` (the
+    simulator) and ``action_only`` (the original demo's frame), with |ours − gt| ×3, at the episode's first frame
+    and half-way to the splice; plus SPARTN's perturbed frames beside the original frames they perturb
+    (:func:`frames_sheet_panels`). Written to :func:`frames_sheet_path`; None when the datasets are not there."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from umi_aug.io_utils import atomic_path
+
+    panels = frames_sheet_panels(cfg, n_episodes)
+    if panels is None:
+        return None
+    n_cols = max(len(r) for r in panels)
+    fig, axes = plt.subplots(len(panels), n_cols, figsize=(2 * n_cols, 2.1 * len(panels)), squeeze=False)
+    for i, row in enumerate(panels):
+        for j, p in enumerate(row):
+            axes[i, j].imshow(p["image"])
+            axes[i, j].set_title(p["title"], fontsize=7)
+    for ax in axes.ravel():
+        ax.axis("off")
+    fig.suptitle(f"square study {cfg.name}: what each variant trains on ({max(cfg.sizes)} demos)", fontsize=10)
+    fig.tight_layout()
+    out = frames_sheet_path(cfg)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=100, format="jpg", pil_kwargs={"quality": 88})
+    plt.close(fig)
+    return str(out)

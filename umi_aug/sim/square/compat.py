@@ -9,14 +9,18 @@ import time, so :func:`import_robosuite` selects the offscreen GL backend first 
 
 from __future__ import annotations
 
+import contextlib
+import io
+import logging
 import sys
 import types
+from collections.abc import Iterator
 from types import ModuleType
 
 from umi_aug.errors import SimError
 from umi_aug.sim.gl import import_mujoco
 
-__all__ = ["install_mujoco_py_stub", "import_robosuite", "import_robomimic_env_utils"]
+__all__ = ["install_mujoco_py_stub", "import_robosuite", "import_robomimic_env_utils", "robomimic_quiet"]
 
 _INSTALL_HINT = ("install the robomimic extra: pip install -c constraints.txt -e '.[robomimic]' "
                  "(robosuite==1.4.1, robomimic==0.3.0 --no-deps, h5py)")
@@ -36,9 +40,41 @@ def install_mujoco_py_stub() -> None:
     sys.modules["mujoco_py.builder"] = builder
 
 
+def _empty_private_macros() -> None:
+    """robosuite warns three lines on import when it has no ``macros_private.py`` (its optional per-install
+    settings file). Without one, register an empty module under that name (the defaults, as robosuite uses them
+    then) so nothing is printed; a real file is left to be imported."""
+    import importlib.util
+    from pathlib import Path
+
+    if "robosuite" in sys.modules or "robosuite.macros_private" in sys.modules:
+        return
+    spec = importlib.util.find_spec("robosuite")  # locates the package without importing it
+    if spec is None or not spec.submodule_search_locations:
+        return
+    if any((Path(p) / "macros_private.py").exists() for p in spec.submodule_search_locations):
+        return
+    sys.modules["robosuite.macros_private"] = types.ModuleType("robosuite.macros_private")
+
+
+@contextlib.contextmanager
+def robomimic_quiet() -> Iterator[None]:
+    """What robomimic / robosuite print to stdout inside (environment banners, observation-spec tables) goes to
+    this module's debug log instead of the user's console."""
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buf):
+            yield
+    finally:
+        text = buf.getvalue().strip()
+        if text:
+            logging.getLogger(__name__).debug("robomimic: %s", text)
+
+
 def import_robosuite() -> ModuleType:
     """Choose the GL backend, then import and return ``robosuite`` (raises :class:`SimError` if missing)."""
     import_mujoco()
+    _empty_private_macros()
     try:
         import robosuite
     except ImportError as exc:

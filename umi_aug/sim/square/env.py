@@ -28,7 +28,7 @@ import numpy as np
 
 from umi_aug.errors import SimError
 from umi_aug.sim.square.camera import WRIST_CAMERA, WristFisheyeCamera, camera_pose_cv
-from umi_aug.sim.square.compat import import_robomimic_env_utils, import_robosuite
+from umi_aug.sim.square.compat import import_robomimic_env_utils, import_robosuite, robomimic_quiet
 
 __all__ = [
     "SQUARE_ENV_NAME", "FISHEYE_KEY", "UMI_IMAGE_KEY", "LOW_DIM_KEYS", "CONTROL_FREQ_HZ", "GRIP_SITE",
@@ -79,8 +79,9 @@ def init_robomimic_obs_utils(image_keys: tuple[str, ...] = (FISHEYE_KEY,)) -> No
     import_robomimic_env_utils()
     import robomimic.utils.obs_utils as obs_utils
 
-    obs_utils.initialize_obs_utils_with_obs_specs(
-        {"obs": {"low_dim": list(LOW_DIM_KEYS), "rgb": list(image_keys)}})
+    with robomimic_quiet():
+        obs_utils.initialize_obs_utils_with_obs_specs(
+            {"obs": {"low_dim": list(LOW_DIM_KEYS), "rgb": list(image_keys)}})
 
 
 class SquareEnv:
@@ -101,8 +102,9 @@ class SquareEnv:
         meta.setdefault("env_kwargs", {})["hard_reset"] = False
         init_robomimic_obs_utils()
         self.env_meta = meta
-        self.env = env_utils.create_env_from_metadata(
-            env_meta=meta, render=False, render_offscreen=False, use_image_obs=False)
+        with robomimic_quiet():
+            self.env = env_utils.create_env_from_metadata(
+                env_meta=meta, render=False, render_offscreen=False, use_image_obs=False)
         self.rs = self.env.env  # robosuite environment
         self.image_size = image_size
         self._camera: WristFisheyeCamera | None = None
