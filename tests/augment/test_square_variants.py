@@ -232,6 +232,29 @@ def test_spartn_window_of_the_policy_dataset_is_corrective(fake_export, tmp_path
     ends = np.asarray(ds.episode_ends)
     idx = np.flatnonzero(ds.indices[:, 0] == ends[0] + 1)  # current row = the perturbed frame t of the 1st one
     assert len(idx) == 1
+    # each SPARTN short episode is ONE sample (its perturbed step), the source demo one per step
+    starts = np.concatenate([[0], ends[:-1]])
+    per_episode = np.bincount(np.searchsorted(ends, ds.indices[:, 0], side="right"), minlength=len(ends))
+    assert per_episode[0] == ends[0] - (task.action_horizon - 1) * (1 - task.action_padding) \
+        and (per_episode[1:] == 1).all() and len(ends) > 1
+    assert set(ds.indices[:, 0][np.searchsorted(ends, ds.indices[:, 0], side="right") > 0]) == set(starts[1:] + 1)
+    # the marker survives a data-size cut and is checked when read
+    from umi_aug.augment.square_variants import subset_variant
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.data.schema import SAMPLE_STEP_KEY
+    from umi_aug.errors import PolicyError
+
+    cut = tmp_path / "cut.zarr.zip"
+    subset_variant(out, cut, 1, progress=False)
+    assert np.array_equal(UmiPolicyDataset(cut, task, split="all").indices, ds.indices)
+    b2 = ReplayBuffer.open(out, mode="a", load_to_memory=True)  # writable in-memory copy
+    steps = np.asarray(b2.meta[SAMPLE_STEP_KEY][:])
+    steps[-1] = 40
+    b2.meta[SAMPLE_STEP_KEY][:] = steps
+    bad = tmp_path / "bad.zarr.zip"
+    b2.save(bad)
+    with pytest.raises(PolicyError, match=rf"'meta/{SAMPLE_STEP_KEY}'\[{len(ends) - 1}\] = 40 is not a step"):
+        UmiPolicyDataset(bad, task, split="all")
     action = ds.lowdim_batch(idx)["action"][0]  # [16, 10] relative to the (perturbed) current pose
     d, _, _, _ = _read(out)
     T_tcp = pos_rotvec_to_pose(np.concatenate([d["robot0_eef_pos"], d["robot0_eef_rot_axis_angle"]], 1)

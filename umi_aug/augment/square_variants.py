@@ -14,7 +14,8 @@ source demos, trajectories and bytes wherever they are meant to:
   rotation uniform in angle ≤ ``rot_deg`` about a uniform axis, in the camera frame): a short episode whose
   observed frames ``t−1, t`` are at ``T_world_cam[k] @ δ`` (3DGS render + gripper overlay) and whose later frames
   ``t+1 … t+H−1`` are the ORIGINAL ones. The policy's action window at ``t`` then reads: target 0 = the perturbed
-  current pose, targets 1… = the original trajectory — the corrective label back onto the demo. SPARTN's exact
+  current pose, targets 1… = the original trajectory — the corrective label back onto the demo. Each short episode
+  is ONE training sample, that step (``meta/umi_aug_sample_step``, read by the policy dataset). SPARTN's exact
   magnitudes are not public (``../shared/spec/eval_and_deploy.md`` §5); these are ours and configurable.
 
 Every output is written to a temporary path and renamed (never half-written); its root attribute
@@ -32,6 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from umi_aug.augment.exporter import IMAGE_KEY, RECORD_CHUNK, RECORD_KEYS, _append_episode, read_episode_records
+from umi_aug.data.schema import SAMPLE_STEP_KEY
 from umi_aug.errors import AugmentError
 
 __all__ = ["VARIANTS", "SpartnConfig", "write_variant", "subset_variant", "action_only_sources", "spartn_perturbation",
@@ -179,7 +181,11 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
         if variant == "spartn":
             keep = [e for e in keep if aug_id[e] < 0]
         buf = _empty_like(src)
+        src_steps = (np.asarray(src.meta[SAMPLE_STEP_KEY][:], dtype=np.int64)
+                     if SAMPLE_STEP_KEY in set(src.meta.array_keys()) else np.full(len(ends), -1, np.int64))
+        steps: list[int] = []  # meta/umi_aug_sample_step of the output, episode by episode
         for e in tqdm(keep, desc=f"{variant} (n={n_demos})", unit="episode", disable=not progress):
+            steps.append(int(src_steps[e]))
             rows = np.arange(starts[e], ends[e])
             record = {k: rec[k][e] for k in RECORD_KEYS}
             low = _lowdim(src, rows)
@@ -204,11 +210,14 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
             summary["augmented"] += int(aug_id[e] >= 0)
             if variant == "spartn":
                 summary["frames_new"] += _spartn_episodes(buf, src, e, rows, s, spartn or SpartnConfig(),
-                                                          render_new, summary)
+                                                          render_new, summary, steps)
         buf.root.attrs[VARIANT_ATTR] = summary | {"spartn": asdict(spartn) if variant == "spartn" and spartn
                                                   else None}
         if "T_cam_tcp" in src.root.attrs:
             buf.root.attrs["T_cam_tcp"] = src.root.attrs["T_cam_tcp"]
+        if any(k >= 0 for k in steps):
+            buf.meta.array(SAMPLE_STEP_KEY, np.asarray(steps, dtype=np.int64), chunks=(RECORD_CHUNK,),
+                           compressor=None)
         buf.save(out_path)  # atomic (temporary path, then rename)
     return summary
 
@@ -229,8 +238,10 @@ def subset_variant(variant_path: str | os.PathLike, out_path: str | os.PathLike,
 
 
 def _spartn_episodes(buf, src, e: int, rows: np.ndarray, splice: int, cfg: SpartnConfig, render_new,
-                     summary: dict) -> int:
-    """Append the SPARTN episodes of source demo ``e`` (rows ``rows`` of ``src``); returns frames rendered."""
+                     summary: dict, steps: list[int]) -> int:
+    """Append the SPARTN episodes of source demo ``e`` (rows ``rows`` of ``src``); returns frames rendered. Each is
+    ONE training sample, its perturbed step ``To−1`` (appended to ``steps``, ``meta/umi_aug_sample_step``): the
+    windows at its other frames would pair unperturbed or mixed observations with a padded, stopping tail."""
     from umi_aug.data import make_umi_episode
     from umi_aug.geometry.umi import tcp_poses_from_camera_poses
 
@@ -259,6 +270,7 @@ def _spartn_episodes(buf, src, e: int, rows: np.ndarray, splice: int, cfg: Spart
             record = {"aug_source_episode": e, "aug_mode": 0, "aug_id": -2, "aug_seed": cfg.seed,
                       "aug_attempts": 1, "aug_splice_index": To, "aug_job": -1}
             _add(buf, src, ep, frames, rows[k[To:]], record)
+            steps.append(To - 1)
             n_new += To
             summary["episodes"] += 1
             summary["augmented"] += 1

@@ -10,6 +10,11 @@ DATA_GROUP = "data"
 META_GROUP = "meta"
 EPISODE_ENDS = "episode_ends"
 
+#: Optional ``meta/`` array (umi-aug's, UMI ignores it): int64 ``[n_episodes]``, which current steps of an episode
+#: are training samples: ``-1`` every step (UMI's rule), ``k >= 0`` only step ``k`` (episode-relative). A SPARTN
+#: short episode is one sample (its perturbed step), not a window at each of its frames.
+SAMPLE_STEP_KEY = "umi_aug_sample_step"
+
 #: ``camera{j}_rgb``: uint8 (N, H, W, 3) RGB images.
 IMAGE_KEY_RE = re.compile(r"^camera\d+_rgb$")
 

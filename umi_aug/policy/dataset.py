@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from umi_aug.data.schema import SAMPLE_STEP_KEY
 from umi_aug.errors import DatasetError, PolicyError
 from umi_aug.geometry import pos_rotvec_to_pose
 from umi_aug.policy.config import TaskConfig, shape_meta
@@ -38,6 +39,24 @@ log = logging.getLogger(__name__)
 
 #: Samples per chunk when fitting the normaliser (bounds memory: ~chunk × H × 16 doubles per arm).
 _FIT_CHUNK = 8192
+
+
+def _read_sample_steps(buf, path, ends: np.ndarray) -> np.ndarray:
+    """``meta/umi_aug_sample_step`` (:data:`umi_aug.data.schema.SAMPLE_STEP_KEY`) checked against the episodes, or
+    all −1 (every step is a sample, UMI's rule) when the buffer has none."""
+    if SAMPLE_STEP_KEY not in set(buf.meta.array_keys()):
+        return np.full(len(ends), -1, np.int64)
+    steps = np.asarray(buf.meta[SAMPLE_STEP_KEY][:])
+    lengths = np.diff(np.concatenate([[0], ends]))
+    if steps.shape != (len(ends),) or not np.issubdtype(steps.dtype, np.integer):
+        raise PolicyError(f"{path}: 'meta/{SAMPLE_STEP_KEY}' has shape {steps.shape} dtype {steps.dtype}; "
+                          f"expected one integer per episode ({len(ends)})")
+    bad = np.flatnonzero((steps < -1) | (steps >= lengths))
+    if bad.size:
+        e = int(bad[0])
+        raise PolicyError(f"{path}: 'meta/{SAMPLE_STEP_KEY}'[{e}] = {int(steps[e])} is not a step of episode {e} "
+                          f"(length {int(lengths[e])}; -1 = every step)")
+    return steps.astype(np.int64)
 
 
 def get_val_mask(n_episodes: int, val_ratio: float, seed: int = 0) -> np.ndarray:
@@ -183,6 +202,7 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
         self.episode_ends = buf.episode_ends
         if len(self.episode_ends) == 0:
             raise PolicyError(f"{self.path}: the replay buffer has no episodes")
+        self.sample_step = _read_sample_steps(buf, self.path, np.asarray(self.episode_ends))
         self.pose6, self.gripper, self.start_pose = [], [], []
         for i in range(self.task.n_robots):
             pos = np.asarray(buf[f"robot{i}_eef_pos"][:], dtype=np.float64)
@@ -203,6 +223,9 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
             if use:
                 last = e if t.action_padding else e - span + 1
                 c = np.arange(s, max(s, last), dtype=np.int64)
+                k = int(self.sample_step[ep])
+                if k >= 0:  # one sample only (meta/umi_aug_sample_step, e.g. a SPARTN short episode)
+                    c = c[c == s + k]
                 cur.append(c)
                 start.append(np.full_like(c, s))
                 end.append(np.full_like(c, e))
