@@ -162,3 +162,51 @@ def test_train_py_smoke_subprocess(dataset_path, tmp_path):
     assert "Traceback" not in res.stderr
     assert "feature_extraction.cc" not in res.stderr and not any(
         ln.startswith(("I2", "W2")) for ln in res.stderr.splitlines()), res.stderr[-2000:]
+
+
+def test_mid_epoch_checkpoint_resumes_at_the_next_batch(dataset_path, tmp_path, monkeypatch):
+    """``checkpoint_every_steps``: a run killed mid-epoch and resumed from its step checkpoint ends with the same
+    weights and step count as the run that was never interrupted (same batches in the same order, same diffusion
+    noise). The start-pose noise is off here: like UMI's, it is drawn from a per-process stream, which a resumed
+    process restarts."""
+    import umi_aug.policy.workspace as ws
+
+    def cfg_for(name: str, every: int):
+        cfg = tiny_config(dataset_path, tmp_path / name)
+        t = cfg.training
+        t.num_epochs, t.val_every, t.sample_every, t.checkpoint_every, t.checkpoint_every_steps = 2, 0, 0, 0, every
+        cfg.dataloader.batch_size = 4  # 8 batches per epoch
+        cfg.task.start_pose_noise = 0.0
+        cfg.output_dir = str(tmp_path / name / "run")
+        return cfg
+
+    ref = TrainWorkspace(cfg_for("ref", 0)).run()
+    assert ref["global_step"] == 16
+
+    real = ws._JsonlLog.write
+
+    def killed_after_step_7(self, row):  # the process dies as step 7's log line is written
+        if row.get("step") == 7 and "train_loss" in row:
+            raise KeyboardInterrupt("killed")
+        return real(self, row)
+
+    cfg = cfg_for("cut", 5)
+    monkeypatch.setattr(ws._JsonlLog, "write", killed_after_step_7)
+    with pytest.raises(KeyboardInterrupt):
+        TrainWorkspace(cfg).run()
+    monkeypatch.setattr(ws._JsonlLog, "write", real)
+    ckpt = Path(cfg.output_dir) / "checkpoints" / "latest.ckpt"
+    assert load_checkpoint(ckpt)["pickles"] == {"global_step": 5, "epoch": 0, "epoch_done": False,
+                                                "batches_done": 5}
+    out = TrainWorkspace(cfg).run()
+    assert out["start_step"] == 5 and out["global_step"] == 16 and out["epochs_done"] == 2
+    a = load_checkpoint(Path(ref["checkpoint"]))["state_dicts"]
+    b = load_checkpoint(Path(out["checkpoint"]))["state_dicts"]
+    for part in ("model", "ema_model"):
+        for k, v in a[part].items():
+            torch.testing.assert_close(b[part][k], v, rtol=0, atol=1e-6, msg=f"{part}.{k}")
+    losses = lambda name: [r["train_loss"] for r in iter_jsonl(tmp_path / name / "run" / "logs.jsonl")  # noqa: E731
+                           if "train_loss" in r]
+    ref_losses, cut_losses = losses("ref"), losses("cut")
+    assert len(cut_losses) == 6 + 11  # steps 1-6 before the kill, 6-16 again from the step-5 checkpoint
+    np.testing.assert_allclose(cut_losses[-11:], ref_losses[-11:], rtol=1e-5)

@@ -201,6 +201,9 @@ class TrainingConfig:
     val_every: int = 1
     sample_every: int = 5
     checkpoint_every: int = 10
+    #: also checkpoint every this many optimiser steps, mid-epoch included (0 = off); a resumed run continues at
+    #: the next batch of that epoch's order, so a run killed between epochs loses at most this many steps
+    checkpoint_every_steps: int = 0
     max_val_steps: Optional[int] = None
     #: continue from ``<output_dir>/checkpoints/latest.ckpt`` when it exists
     resume: bool = True

@@ -5,8 +5,9 @@ validation loss, sampled-action MSE, atomic checkpoints with resume, tqdm progre
 
 * ``checkpoints/latest.ckpt`` — every ``training.checkpoint_every`` epochs and at the end (see
   :mod:`umi_aug.policy.checkpoint`); ``training.resume`` continues from it (optimizer, scheduler, EMA, step).
-  Checkpoints are taken between epochs; a run stopped by ``max_steps`` mid-epoch resumes at the start of that
-  epoch (the data order of each epoch is a function of ``seed`` and the epoch number).
+  Checkpoints are taken between epochs, at ``max_steps`` and, with ``training.checkpoint_every_steps``, every that
+  many steps mid-epoch; a run resumed from a mid-epoch checkpoint continues with the next batch of that epoch's
+  order (the data order of each epoch is a function of ``seed`` and the epoch number).
 * ``logs.jsonl`` — one JSON object per optimiser step (``train_loss``, ``lr``) and per epoch
   (``train_loss_epoch``, ``val_loss``, ``train_action_mse_error``).
 """
@@ -97,21 +98,22 @@ class EpochSampler(torch.utils.data.Sampler):
     once: :meth:`set_epoch` selects the epoch, so persistent workers keep running across epochs."""
 
     def __init__(self, n: int, seed: int, shuffle: bool = True) -> None:
-        self.n, self.seed, self.shuffle, self.epoch = int(n), int(seed), bool(shuffle), 0
+        self.n, self.seed, self.shuffle, self.epoch, self.start = int(n), int(seed), bool(shuffle), 0, 0
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
+    def set_epoch(self, epoch: int, start: int = 0) -> None:
+        """Select the epoch; ``start`` skips the first ``start`` indices of its order (a mid-epoch resume)."""
+        self.epoch, self.start = int(epoch), max(0, int(start))
 
     def __len__(self) -> int:
-        return self.n
+        return max(0, self.n - self.start)
 
     def __iter__(self):
         if not self.shuffle:
-            return iter(range(self.n))
+            return iter(range(self.start, self.n))
         g = torch.Generator()
         g.manual_seed(epoch_seed(self.seed, self.epoch))
         torch.empty((), dtype=torch.int64).random_(generator=g)  # the loader's base-seed draw
-        return iter(torch.randperm(self.n, generator=g).tolist())
+        return iter(torch.randperm(self.n, generator=g).tolist()[self.start:])
 
 
 def worker_init(worker_id: int) -> None:
@@ -142,21 +144,24 @@ def loader_context(ds: torch.utils.data.Dataset) -> str | None:
 
 def make_loader(ds: torch.utils.data.Dataset, batch_size: int, shuffle: bool, seed: int, epoch: int = 0,
                 num_workers: int = 0, pin_memory: bool = False, persistent: bool = True,
-                context: str | None = None) -> torch.utils.data.DataLoader:
-    """The training/validation DataLoader. ``persistent`` with workers: :class:`EpochSampler` + persistent workers
-    (call ``loader.sampler.set_epoch(e)`` and the dataset's ``set_epoch`` before each epoch); otherwise the
-    reference: a RandomSampler on a generator seeded for ``epoch`` (one loader per epoch). Both give the same index
-    order per epoch. Workers get :func:`worker_init`; ``context``: ``"fork"`` / ``"spawn"`` (None: the default)."""
+                context: str | None = None, start_batch: int = 0) -> torch.utils.data.DataLoader:
+    """The training/validation DataLoader, its order from :class:`EpochSampler` (the order of a fresh
+    ``DataLoader(shuffle=..., generator=<seeded for epoch>)`` iterated directly). ``persistent`` with workers: built
+    once, persistent workers (call ``loader.sampler.set_epoch(e)`` and the dataset's ``set_epoch`` before each
+    epoch); otherwise one loader per epoch. Both give the same index order per epoch. Workers get :func:`worker_init`; ``context``: ``"fork"`` / ``"spawn"`` (None: the default).
+    ``start_batch`` > 0: the epoch's order from that batch on (:class:`EpochSampler`; a mid-epoch resume)."""
     common = dict(batch_size=batch_size, num_workers=num_workers, pin_memory=pin_memory, drop_last=False,
                   worker_init_fn=worker_init if num_workers > 0 else None,
                   multiprocessing_context=context if num_workers > 0 else None)
     g = torch.Generator()  # the workers' base seed comes from it (never from the global torch RNG)
     g.manual_seed(epoch_seed(seed, epoch))
-    if persistent and num_workers > 0:
-        sampler = EpochSampler(len(ds), seed, shuffle)
-        sampler.set_epoch(epoch)
-        return torch.utils.data.DataLoader(ds, sampler=sampler, generator=g, persistent_workers=True, **common)
-    return torch.utils.data.DataLoader(ds, shuffle=shuffle, generator=g, persistent_workers=False, **common)
+    # the order always comes from EpochSampler (not the loader's RandomSampler, whose order also depends on how
+    # many draws the loader's iterator makes from `g` first — one more under tqdm), so a resumed epoch, a
+    # persistent loader and a fresh one agree
+    sampler = EpochSampler(len(ds), seed, shuffle)
+    sampler.set_epoch(epoch, start_batch * batch_size)
+    return torch.utils.data.DataLoader(ds, sampler=sampler, generator=g,
+                                       persistent_workers=persistent and num_workers > 0, **common)
 
 
 def seed_everything(seed: int) -> None:
@@ -291,7 +296,8 @@ class TrainWorkspace:
             return train, val
         return build_augmented_dataset(train, path, self.cfg), val
 
-    def _loader(self, ds: UmiPolicyDataset, train: bool, epoch: int = 0) -> torch.utils.data.DataLoader:
+    def _loader(self, ds: UmiPolicyDataset, train: bool, epoch: int = 0, start_batch: int = 0
+                ) -> torch.utils.data.DataLoader:
         """The DataLoader of ``ds`` for ``epoch``. With workers and ``dataloader.persistent_workers`` it is built
         once per dataset (:func:`make_loader`: persistent workers, epoch-seeded sampler) and re-used, so workers
         start (import, scene load, kernel cache load) once per run; otherwise a new one per call (the reference)."""
@@ -301,13 +307,13 @@ class TrainWorkspace:
                   pin_memory=d.pin_memory and torch.cuda.is_available(), persistent=c.persistent_workers,
                   context=loader_context(ds))
         if not (c.persistent_workers and d.num_workers > 0):
-            return make_loader(ds, epoch=epoch, **kw)
+            return make_loader(ds, epoch=epoch, start_batch=start_batch, **kw)
         cache = self.__dict__.setdefault("_loaders", {})
         key = (id(ds), train)
         if key not in cache:
             cache[key] = (ds, make_loader(ds, epoch=epoch, **kw))  # ds kept: its id stays valid
         loader = cache[key][1]
-        loader.sampler.set_epoch(epoch)
+        loader.sampler.set_epoch(epoch, start_batch * kw["batch_size"])
         return loader
 
     # ------------------------------------------------------------------ run
@@ -338,7 +344,7 @@ class TrainWorkspace:
             total = min(total, int(t.max_steps))
         lr_sched = build_lr_scheduler(optimizer, t.lr_scheduler, t.lr_warmup_steps, total)
 
-        global_step, epoch = 0, 0
+        global_step, epoch, skip = 0, 0, 0  # skip: batches of `epoch` already trained (a mid-epoch checkpoint)
         if t.resume and self.ckpt_path.exists():
             payload = load_checkpoint(self.ckpt_path, map_location=device)
             sd = payload["state_dicts"]
@@ -348,10 +354,14 @@ class TrainWorkspace:
             if ema is not None and "ema_model" in sd:
                 ema.averaged_model.load_state_dict(sd["ema_model"])
                 ema.load_state_dict(sd["ema"])
-            global_step, epoch = int(payload["pickles"]["global_step"]), int(payload["pickles"]["epoch"])
+            pk = payload["pickles"]
+            global_step, epoch = int(pk["global_step"]), int(pk["epoch"])
+            skip = 0 if pk.get("epoch_done", True) else int(pk.get("batches_done", 0))
+            if skip >= steps_per_epoch:  # the checkpoint fell on the epoch's last batch
+                epoch, skip = epoch + 1, 0
             if "rng" in payload:
                 torch.set_rng_state(payload["rng"]["torch"].cpu())
-            log.info("resumed from %s at step %d, epoch %d", self.ckpt_path, global_step, epoch)
+            log.info("resumed from %s at step %d, epoch %d (batch %d)", self.ckpt_path, global_step, epoch, skip)
 
         metrics = _JsonlLog(self.output_dir / "logs.jsonl")
         amp = (torch.autocast(device_type=device.type, dtype=torch.bfloat16) if cfg.device.amp == "bf16"
@@ -368,7 +378,8 @@ class TrainWorkspace:
                 losses = []
                 if hasattr(train_set, "set_epoch"):
                     train_set.set_epoch(epoch)
-                loader = self._loader(train_set, True, epoch)
+                loader = self._loader(train_set, True, epoch, start_batch=skip)
+                done_before, skip = skip, 0
                 epoch_done = True
                 bar = tqdm(loader, desc=f"epoch {epoch}", leave=False, disable=not t.progress_bar, mininterval=1.0)
                 for batch in bar:
@@ -394,6 +405,10 @@ class TrainWorkspace:
                     if t.max_steps is not None and global_step >= t.max_steps:
                         epoch_done = len(losses) == len(loader)
                         break
+                    if t.checkpoint_every_steps and global_step % t.checkpoint_every_steps == 0 \
+                            and len(losses) < len(loader):
+                        self.save(policy, ema, optimizer, lr_sched, global_step, epoch, False,
+                                  batches_done=done_before + len(losses))
                 bar.close()
                 row: dict[str, Any] = {"epoch": epoch, "step": global_step,
                                        "train_loss_epoch": float(np.mean(losses)) if losses else float("nan")}
@@ -410,21 +425,26 @@ class TrainWorkspace:
                 log.info("epoch %s", row)
                 summary.update(row)
                 if last_epoch or (t.checkpoint_every and epoch_done and epoch % t.checkpoint_every == 0):
-                    self.save(policy, ema, optimizer, lr_sched, global_step, epoch, epoch_done)
+                    self.save(policy, ema, optimizer, lr_sched, global_step, epoch, epoch_done,
+                              batches_done=0 if epoch_done else done_before + len(losses))
         finally:
             metrics.close()
         summary.update({"global_step": global_step, "epochs_done": epoch, "wall_s": time.perf_counter() - t0,
                         "checkpoint": str(self.ckpt_path) if self.ckpt_path.exists() else None})
         return summary
 
-    def save(self, policy, ema, optimizer, lr_sched, global_step: int, epoch: int, epoch_done: bool) -> Path:
+    def save(self, policy, ema, optimizer, lr_sched, global_step: int, epoch: int, epoch_done: bool,
+             batches_done: int = 0) -> Path:
+        """Atomic ``latest.ckpt``; ``batches_done``: batches of ``epoch`` trained when it is not done (resumed
+        from the next one)."""
         sd = {"model": policy.state_dict(), "optimizer": optimizer.state_dict(), "lr_scheduler": lr_sched.state_dict()}
         if ema is not None:
             sd["ema_model"] = ema.averaged_model.state_dict()
             sd["ema"] = ema.state_dict()
         return save_checkpoint(self.ckpt_path, {
             "cfg": config_to_dict(self.cfg), "state_dicts": sd,
-            "pickles": {"global_step": global_step, "epoch": epoch, "epoch_done": epoch_done},
+            "pickles": {"global_step": global_step, "epoch": epoch, "epoch_done": epoch_done,
+                        **({} if epoch_done else {"batches_done": int(batches_done)})},
             "rng": {"torch": torch.get_rng_state()}})
 
     @torch.no_grad()
