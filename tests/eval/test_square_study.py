@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def _cfg(tmp_path: Path, *over: str) -> st.StudyConfig:
     return st.load_recipe(ROOT / "configs" / "square_study" / "cpu.yaml",
-                          [f"out_dir={tmp_path / 'out'}", f"report_md={tmp_path / 'r.md'}",
+                          [f"out_dir={tmp_path / 'out'}", "record_dir=''", f"report_md={tmp_path / 'r.md'}",
                            f"report_png={tmp_path / 'r.png'}", *over])
 
 
@@ -50,48 +50,100 @@ def test_cells_main_grid_then_sweep(tmp_path):
 
 
 def _fake_steps(monkeypatch, calls: list[str], fail: str | None = None, unfinished_eval: str | None = None):
+    """Every step replaced by a recorder that writes the output the driver checks; train.py / eval_sim.py are faked
+    at the subprocess, so the driver's own train / eval bookkeeping (record copies) runs for real."""
+    def demos(cfg):
+        calls.append("demos")
+        d = Path(cfg.demos_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "report.json").write_text(json.dumps({"successes": max(cfg.sizes),
+                                                   "config": {"image_size": cfg.image_size}}))
+        return {}
+
     def export(cfg, theta):
         calls.append(f"export_theta{theta:g}" if theta is not None else "export")
+        st.export_path(cfg, theta).parent.mkdir(parents=True, exist_ok=True)
+        st.export_path(cfg, theta).write_text("x")
         return {"n_augmented": 3}
 
     def variant(cfg, cell):
         calls.append(f"variant/{cell['name']}")
         if cell["name"] == fail:
             raise st.StudyError("boom")
+        st.variant_path(cfg, cell).write_text("x")
         return {}
 
-    def train(cfg, cell):
-        calls.append(f"train/{cell['name']}")
-        return {}
+    def run(cmd, log_path):
+        arg = dict(a.split("=", 1) for a in cmd[2:] if "=" in a)
+        if cmd[1] == "train/train.py":
+            name = Path(arg["hydra.run.dir"]).name
+            calls.append(f"train/{name}")
+            ck = Path(arg["hydra.run.dir"]) / "checkpoints" / "latest.ckpt"
+            ck.parent.mkdir(parents=True, exist_ok=True)
+            ck.write_text("x")
+        else:
+            out = Path(arg["out_dir"])
+            calls.append(f"eval/{out.name}")
+            out.mkdir(parents=True, exist_ok=True)
+            n = 5 if out.name == unfinished_eval else 200
+            (out / "results.jsonl").write_text("".join(json.dumps({"config": i, "success": i % 2 == 0}) + "\n"
+                                                       for i in range(n)))
+            (out / "summary.json").write_text(json.dumps({"n": n, "success_rate": 0.5}))
+        return 0
 
-    def evaluate(cfg, cell):
-        calls.append(f"eval/{cell['name']}")
-        return {"n": 5, "_done": cell["name"] != unfinished_eval}
-
+    monkeypatch.setattr(st, "_step_demos", demos)
     monkeypatch.setattr(st, "_step_export", export)
     monkeypatch.setattr(st, "_step_variant", variant)
-    monkeypatch.setattr(st, "_step_train", train)
-    monkeypatch.setattr(st, "_step_eval", evaluate)
+    monkeypatch.setattr(st, "_run", run)
+
+
+def _cell(name: str) -> list[str]:
+    return [f"train/{name}", f"eval/{name}"]
 
 
 def test_step_order_resume_and_unfinished_eval(tmp_path, monkeypatch):
-    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[30,50]")
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[30,50]", f"record_dir={tmp_path / 'record'}",
+               f"demos_dir={tmp_path / 'demos'}")
     calls: list[str] = []
     _fake_steps(monkeypatch, calls, unfinished_eval="ours_n25")
     state = st.run_study(cfg, ("data", "train", "eval"))
-    assert calls == ["export", "export_theta30",
-                     "variant/none_n25", "variant/ours_n25", "variant/none_n10", "variant/ours_n10",
-                     "variant/ours_n10_theta30",
-                     "train/none_n10", "eval/none_n10", "train/none_n25", "eval/none_n25",
-                     "train/ours_n10", "eval/ours_n10", "train/ours_n25", "eval/ours_n25",
-                     "train/ours_n10_theta30", "eval/ours_n10_theta30"]
+    # cell by cell, each with the data it needs first; a smaller size is cut from the largest one's dataset
+    assert calls == ["demos", "export", "variant/none_n25", "variant/none_n10", *_cell("none_n10"),
+                     *_cell("none_n25"), "variant/ours_n25", "variant/ours_n10", *_cell("ours_n10"),
+                     *_cell("ours_n25"), "export_theta30", "variant/ours_n10_theta30", *_cell("ours_n10_theta30")]
     assert state["steps"]["export"]["n_augmented"] == 3 and state["steps"]["export"]["seconds"] >= 0
     assert not state["steps"]["eval/ours_n25"]["done"]  # fewer rollouts than the subset: not done
-    saved = json.loads((cfg.out / "study_state.json").read_text())
+    saved = json.loads((tmp_path / "record" / "study_state.json").read_text())
     assert saved["steps"].keys() == state["steps"].keys()
+    # finished cells are in the record; the unfinished one is not
+    rec = tmp_path / "record" / "evals"
+    assert sorted(p.name for p in rec.iterdir()) == ["none_n10", "none_n25", "ours_n10", "ours_n10_theta30"]
+    assert (rec / "none_n10" / "results.jsonl").read_text() == \
+        (st.eval_dir(cfg, {"name": "none_n10"}) / "results.jsonl").read_text()
     calls.clear()
     st.run_study(cfg, ("data", "train", "eval"))
-    assert calls == ["eval/ours_n25"]  # a rerun does only what is not done
+    assert calls == ["eval/ours_n25"]  # a rerun does only what is not done (eval_sim resumes its own results)
+
+
+def test_a_fresh_machine_continues_from_the_record(tmp_path, monkeypatch):
+    import shutil
+
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[]", f"record_dir={tmp_path / 'record'}",
+               f"demos_dir={tmp_path / 'demos'}")
+    calls: list[str] = []
+    _fake_steps(monkeypatch, calls, unfinished_eval="ours_n25")
+    st.run_study(cfg, ("data", "train", "eval"))
+    shutil.rmtree(cfg.out)  # the machine is gone: datasets, checkpoints, partial evaluations with it
+    shutil.rmtree(tmp_path / "demos")
+    calls.clear()
+    _fake_steps(monkeypatch, calls)
+    state = st.run_study(cfg, ("data", "train", "eval"))
+    # only the unfinished cell, and only what it needs
+    assert calls == ["demos", "export", "variant/ours_n25", *_cell("ours_n25")]
+    assert state["steps"]["export"]["reruns"] == 1 and state["steps"]["train/ours_n25"]["reruns"] == 1
+    assert "reruns" not in state["steps"]["train/none_n10"]
+    assert state["steps"]["eval/ours_n25"]["done"]
+    assert json.loads((tmp_path / "record" / "evals" / "ours_n25" / "summary.json").read_text())["n"] == 200
 
 
 def test_budget_stops_before_the_next_step_and_failures_are_recorded(tmp_path, monkeypatch):
@@ -99,24 +151,37 @@ def test_budget_stops_before_the_next_step_and_failures_are_recorded(tmp_path, m
 
     calls: list[str] = []
     _fake_steps(monkeypatch, calls)
-    clock = [0.0]  # a fake clock: the export step takes 2 minutes
-    monkeypatch.setattr(st, "time", types.SimpleNamespace(perf_counter=lambda: clock[0], time=lambda: 0.0))
-    real_export = st._step_export
+    clock = [0.0]  # a fake clock: the export step takes 2 minutes, a cell's train + eval 30 minutes
+    monkeypatch.setattr(st, "time", types.SimpleNamespace(perf_counter=lambda: clock[0], time=lambda: 0.0,
+                                                          strftime=lambda f: "t"))
+    real_export, real_run = st._step_export, st._run
 
     def slow_export(cfg, theta):
         clock[0] += 120.0
         return real_export(cfg, theta)
 
+    def slow_run(cmd, log_path):
+        clock[0] += 900.0
+        return real_run(cmd, log_path)
+
     monkeypatch.setattr(st, "_step_export", slow_export)
-    cfg = _cfg(tmp_path, "variants=[none]", "sweep_thetas=[]", "budget_min=1")
+    monkeypatch.setattr(st, "_run", slow_run)
+    over = ("variants=[none]", "sweep_thetas=[]", f"demos_dir={tmp_path / 'demos'}")
+    cfg = _cfg(tmp_path, *over, "budget_min=1")
     st.run_study(cfg, ("data", "train"))
-    assert calls == ["export"]  # the first step runs, none starts after the 1-minute budget
+    assert calls == ["demos", "export"]  # the first steps run, none starts after the 1-minute budget
+    # a cell is not started when the cells recorded so far took longer than what is left
+    calls.clear()
+    st.run_study(_cfg(tmp_path, *over, "budget_min=45"), ("data", "train", "eval"))
+    assert calls == ["variant/none_n25", "variant/none_n10", *_cell("none_n10")]  # 30 min done, 30 needed, 15 left
+    assert st.cell_minutes_estimate(cfg, json.loads((cfg.out / "study_state.json").read_text())) == 30.0
     monkeypatch.undo()
     calls.clear()
     _fake_steps(monkeypatch, calls, fail="none_n25")
     with pytest.raises(st.StudyError, match="variant/none_n25.*boom"):
-        st.run_study(_cfg(tmp_path, "variants=[none]", "sweep_thetas=[]"), ("data",))
-    row = json.loads((cfg.out / "study_state.json").read_text())["steps"]["variant/none_n25"]
+        st.run_study(_cfg(tmp_path, "variants=[none]", "sweep_thetas=[]", "sizes=[25]",
+                          f"demos_dir={tmp_path / 'demos'}", f"out_dir={tmp_path / 'out2'}"), ("data",))
+    row = json.loads((tmp_path / "out2" / "study_state.json").read_text())["steps"]["variant/none_n25"]
     assert row["done"] is False and row["error"] == "boom"
 
 

@@ -4,21 +4,33 @@ One recipe (``configs/square_study/<name>.yaml``, overridable ``key=value``) fix
 data sizes, variants (:data:`umi_aug.augment.square_variants.VARIANTS`), augmentation (N per demo, cone θ / r),
 the training recipe (identical for every variant) and the evaluation subset. Work is split into steps, each
 skipped when its output is complete, so the study is resumable and can be run in time slices
-(``budget_min``: no new step starts after that many minutes; a running training or evaluation resumes from its own
-checkpoint / results file next time):
+(``budget_min``: no new step starts after that many minutes, and no cell starts training when the cells recorded so
+far took longer than what is left; a running training or evaluation resumes from its own checkpoint / results file
+next time).
 
+The study outlives the machine it runs on: ``record_dir`` (committed; ``docs/square_study_cpu`` for the CPU recipe)
+holds what the report is made of — ``study_state.json`` (every step's wall time and summary), each finished cell's
+``evals/<cell>/results.jsonl`` + ``summary.json``, the exports' summaries and the rendering fidelity — while
+``out_dir`` holds what can be made again (demos, datasets, checkpoints, videos). A cell whose evaluation is in the
+record is finished for good; the data a remaining cell needs is (re)made only when that cell is next, so a fresh
+machine continues the study where the record stops. Steps, in the order they run, for each cell not yet recorded
+(:func:`study_cells` order):
+
+0. ``demos`` — the source demos (:func:`umi_aug.sim.square.generate.generate_demos`, resumable) when ``demos_dir``
+   does not hold enough of them at the recipe's image size;
 1. ``export`` — ONE augmented export of the largest data size's demos (:func:`umi_aug.augment.export` with
    :class:`~umi_aug.augment.square_source.SquareSource`; scene model, Panda-feasible trajectories), plus one per
    extra cone angle of the sweep (its data size only);
 2. ``variant/<v>_n<n>`` — the training datasets (:func:`~umi_aug.augment.square_variants.write_variant`);
 3. ``train/<cell>`` — ``train/train.py`` on each dataset (subprocess; resumes from ``latest.ckpt``);
-4. ``eval/<cell>`` — ``eval/eval_sim.py`` on the fixed configuration subset (subprocess; resumes); steps 3 and 4
-   run cell by cell (:func:`study_cells` order), so a time slice leaves whole cells behind;
+4. ``eval/<cell>`` — ``eval/eval_sim.py`` on the fixed configuration subset (subprocess; resumes); its results go
+   into the record when all configurations are done;
 5. ``report`` — ``<report_md>`` (tables, commands, wall times) and ``<report_png>`` (success vs data size per
    variant with Wilson 95 % intervals; the cone-angle sweep; sub-goals), plus the rendering fidelity of ``ours``
    vs ``gt_render`` at the augmented poses (PSNR / SSIM, median and 5th percentile).
 
-Wall time of every step is recorded in ``<out_dir>/study_state.json``.
+Wall time of every step is recorded in ``study_state.json`` (a step made again on a new machine because its
+output was gone starts its time over and counts ``reruns``).
 """
 
 from __future__ import annotations
@@ -38,7 +50,8 @@ import numpy as np
 from umi_aug.errors import UmiAugError
 from umi_aug.io_utils import atomic_write_text
 
-__all__ = ["StudyConfig", "load_recipe", "study_cells", "run_study", "StudyError"]
+__all__ = ["StudyConfig", "load_recipe", "study_cells", "run_study", "StudyError", "record_eval_dir",
+           "record_export_summary", "cell_minutes_estimate"]
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +85,7 @@ class StudyConfig:
     eval_configs: str = "0:1000:5"
     eval_workers: int = 2
     budget_min: float = 0.0
+    record_dir: str = ""
     report_md: str = "docs/square_study.md"
     report_png: str = "docs/square_study.png"
     python: str = sys.executable
@@ -79,6 +93,11 @@ class StudyConfig:
     @property
     def out(self) -> Path:
         return Path(self.out_dir)
+
+    @property
+    def record(self) -> Path:
+        """Where the study's results are kept (``record_dir``, or ``out_dir`` when it is not set)."""
+        return Path(self.record_dir) if self.record_dir else self.out
 
 
 def load_recipe(path: str | os.PathLike, overrides: list[str] = ()) -> StudyConfig:
@@ -130,10 +149,17 @@ class _State:
     def done(self, step: str) -> bool:
         return bool(self.data["steps"].get(step, {}).get("done"))
 
-    def record(self, step: str, seconds: float, done: bool, **info) -> None:
+    def record(self, step: str, seconds: float, done: bool, resumed: bool = True, **info) -> None:
+        """Add ``seconds`` to the step's time when it ``resumed`` its own partial output; otherwise its time starts
+        over (``reruns`` + 1 when it had been run before, e.g. its output was gone on a new machine)."""
         row = self.data["steps"].setdefault(step, {"seconds": 0.0})
+        if not resumed and "finished_unix" in row:
+            row["seconds"] = 0.0
+            row["reruns"] = int(row.get("reruns", 0)) + 1
+            row.pop("error", None)
         row["seconds"] = float(row.get("seconds", 0.0)) + float(seconds)
         row.update(done=bool(done), finished_unix=time.time(), **info)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.path, json.dumps(self.data, indent=1) + "\n")
 
 
@@ -162,8 +188,21 @@ def _step_export(cfg: StudyConfig, theta: float | None) -> dict[str, Any]:
     out = export_path(cfg, theta)
     s = export(cfg.demos_dir, out, _augment_config(cfg, cfg.theta_deg if theta is None else theta),
                work_dir=cfg.out / "work", source=src, pictures=True)
+    _keep(Path(str(out) + ".summary.json"), record_export_summary(cfg, theta))
     return {"n_augmented": int(s.n_augmented), "n_failed": int(s.n_failed), "n_resampled": int(s.n_resampled),
             "summary": str(out) + ".summary.json"}
+
+
+def record_export_summary(cfg: StudyConfig, theta: float | None = None) -> Path:
+    """The record's copy of an export's ``.summary.json``."""
+    return cfg.record / "exports" / (export_path(cfg, theta).name + ".summary.json")
+
+
+def _keep(src: Path, dst: Path) -> None:
+    """Copy ``src`` into the record at ``dst`` (atomically; nothing when they are the same file)."""
+    if Path(src).resolve() != Path(dst).resolve():
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(dst, Path(src).read_text())
 
 
 def _step_variant(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
@@ -222,51 +261,122 @@ def _run(cmd: list[str], log_path: Path) -> int:
         return subprocess.call(cmd, stdout=fh, stderr=subprocess.STDOUT)
 
 
+def record_eval_dir(cfg: StudyConfig, cell: dict[str, Any]) -> Path:
+    """Where a finished cell's ``results.jsonl`` / ``summary.json`` are kept (the record)."""
+    return cfg.record / "evals" / cell["name"]
+
+
+def _recorded_rollouts(cfg: StudyConfig, cell: dict[str, Any]) -> int:
+    p = record_eval_dir(cfg, cell) / "summary.json"
+    if not p.exists():
+        return 0
+    try:
+        return int(json.loads(p.read_text())["n"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise StudyError(f"{p}: unreadable evaluation summary ({exc}); delete it to evaluate the cell again") from None
+
+
+def demos_ready(cfg: StudyConfig) -> bool:
+    """``demos_dir`` holds at least ``max(sizes)`` demos at the recipe's image size."""
+    p = Path(cfg.demos_dir) / "report.json"
+    if not p.exists():
+        return False
+    rep = json.loads(p.read_text())
+    return (int(rep.get("successes", 0)) >= max(cfg.sizes)
+            and int(rep.get("config", {}).get("image_size", cfg.image_size)) == int(cfg.image_size))
+
+
+def _step_demos(cfg: StudyConfig) -> dict[str, Any]:
+    from umi_aug.sim.square.generate import DemoConfig, generate_demos
+
+    rep = generate_demos(cfg.demos_dir, DemoConfig(n=max(cfg.sizes), image_size=cfg.image_size,
+                                                   workers=cfg.augment_workers))
+    return {"successes": int(rep["successes"]), "tried": int(rep["tried"])}
+
+
+def _cell_steps(cfg: StudyConfig, cell: dict[str, Any], phases: tuple[str, ...]) -> list[tuple[str, Any, Any]]:
+    """``(step, run, output_exists)`` of one cell, dependencies first: demos, its export, the largest data size's
+    dataset it is cut from, its dataset, training, evaluation."""
+    out: list[tuple[str, Any, Any]] = []
+    if "data" in phases:
+        th = cell["theta"]
+        out.append(("demos", lambda: _step_demos(cfg), lambda: demos_ready(cfg)))
+        out.append(("export" if th is None else f"export_theta{th:g}", lambda: _step_export(cfg, th),
+                    lambda: export_path(cfg, th).exists()))
+        big = {**cell, "n": max(cfg.sizes), "name": cell_name(cell["variant"], max(cfg.sizes))}
+        for c in ([big] if th is None and cell["n"] < big["n"] else []) + [cell]:
+            out.append((f"variant/{c['name']}", lambda c=c: _step_variant(cfg, c),
+                        lambda c=c: variant_path(cfg, c).exists()))
+    if "train" in phases:
+        out.append((f"train/{cell['name']}", lambda: _step_train(cfg, cell),
+                    lambda: checkpoint_path(cfg, cell).exists()))
+    if "eval" in phases:
+        out.append((f"eval/{cell['name']}", lambda: _step_eval(cfg, cell),
+                    lambda: _recorded_rollouts(cfg, cell) >= expected_rollouts(cfg)))
+    return out
+
+
+def cell_minutes_estimate(cfg: StudyConfig, state: dict[str, Any]) -> float:
+    """Median minutes of train + eval over the cells finished so far (0 when none is): a cell is not started in a
+    time slice that has less than this left, because its checkpoint would not outlive the machine."""
+    steps = state.get("steps", {})
+    mins = [(steps[f"train/{c['name']}"]["seconds"] + steps[f"eval/{c['name']}"]["seconds"]) / 60.0
+            for c in study_cells(cfg) if steps.get(f"eval/{c['name']}", {}).get("done")
+            and f"train/{c['name']}" in steps]
+    return float(np.median(mins)) if mins else 0.0
+
+
 def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eval", "report")) -> dict[str, Any]:
     """Run (or resume) the study's steps in order; returns the state dict."""
     from tqdm import tqdm
 
     cfg.out.mkdir(parents=True, exist_ok=True)
-    state = _State(cfg.out / "study_state.json")
+    state = _State(cfg.record / "study_state.json")
     t_start = time.perf_counter()
     cells = study_cells(cfg)
 
-    def over_budget() -> bool:
-        return cfg.budget_min > 0 and (time.perf_counter() - t_start) / 60.0 > cfg.budget_min
+    def minutes_left() -> float:
+        return cfg.budget_min - (time.perf_counter() - t_start) / 60.0 if cfg.budget_min > 0 else float("inf")
 
-    def step(name: str, fn) -> bool:
-        if state.done(name):
+    def step(name: str, fn, exists) -> bool:
+        if exists() and (state.done(name) or name == "demos"):
             return True
-        if over_budget():
+        if minutes_left() < 0:
             log.warning("square study: budget of %.0f min used; stopping before %s (rerun to continue)",
                         cfg.budget_min, name)
             return False
+        need = cell_minutes_estimate(cfg, state.data)
+        if name.startswith("train/") and not exists() and need > minutes_left():
+            log.warning("square study: %.0f min left, a cell takes %.0f; stopping before %s (rerun to continue)",
+                        minutes_left(), need, name)
+            return False
+        kind = name.split("/")[0]
+        partial = {"train": lambda: exists(),
+                   "eval": lambda: (eval_dir(cfg, {"name": name.split("/", 1)[1]}) / "results.jsonl").exists()}
+        resumed = bool(partial.get(kind, lambda: False)())
         t0 = time.perf_counter()
         try:
             info = fn() or {}
             ok = bool(info.pop("_done", True))
         except UmiAugError as exc:
-            state.record(name, time.perf_counter() - t0, False, error=str(exc))
+            state.record(name, time.perf_counter() - t0, False, resumed, error=str(exc))
             raise StudyError(f"square study step {name}: {exc}") from exc
-        state.record(name, time.perf_counter() - t0, ok, **{k: v for k, v in info.items()
-                                                            if isinstance(v, (int, float, str, bool))})
+        state.record(name, time.perf_counter() - t0, ok, resumed, **{k: v for k, v in info.items()
+                                                                     if isinstance(v, (int, float, str, bool))})
         return ok
 
-    steps: list[tuple[str, Any]] = []
-    if "data" in phases:
-        steps.append(("export", lambda: _step_export(cfg, None)))
-        for th in sorted({c["theta"] for c in cells if c["theta"] is not None}):
-            steps.append((f"export_theta{th:g}", lambda th=th: _step_export(cfg, th)))
-        for c in sorted(cells, key=lambda c: -c["n"]):  # largest first: smaller sizes are cut from it
-            steps.append((f"variant/{c['name']}", lambda c=c: _step_variant(cfg, c)))
-    # cell by cell (train, then evaluate it) so every time slice leaves finished cells for the report
+    # cell by cell (its data, train, then evaluate it) so every time slice leaves finished cells in the record
+    steps: list[tuple[str, Any, Any]] = []
+    seen: set[str] = set()
     for c in cells:
-        if "train" in phases:
-            steps.append((f"train/{c['name']}", lambda c=c: _step_train(cfg, c)))
-        if "eval" in phases:
-            steps.append((f"eval/{c['name']}", lambda c=c: _step_eval(cfg, c)))
-    for name, fn in tqdm(steps, desc="square study", unit="step"):
-        if not step(name, fn) and over_budget():
+        if "eval" in phases and _recorded_rollouts(cfg, c) >= expected_rollouts(cfg):
+            continue  # finished for good: nothing it needed is made again
+        for name, fn, exists in _cell_steps(cfg, c, phases):
+            if name not in seen:
+                seen.add(name)
+                steps.append((name, fn, exists))
+    for name, fn, exists in tqdm(steps, desc="square study", unit="step"):
+        if not step(name, fn, exists) and minutes_left() < cell_minutes_estimate(cfg, state.data):
             break
     if "report" in phases:
         from umi_aug.eval.square_report import write_report
@@ -276,6 +386,10 @@ def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eva
 
 
 def _step_train(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
+    stale = eval_dir(cfg, cell) / "results.jsonl"
+    if not checkpoint_path(cfg, cell).exists() and stale.exists():
+        # rollouts of an earlier checkpoint must not count towards the one trained now: set aside, not deleted
+        stale.rename(stale.with_name(f"results.jsonl.before-{time.strftime('%Y%m%d-%H%M%S')}"))
     rc = _run(train_command(cfg, cell), cfg.out / "runs" / f"{cell['name']}.log")
     if rc != 0:
         raise StudyError(f"train {cell['name']}: exit status {rc}; see {cfg.out / 'runs' / (cell['name'] + '.log')}")
@@ -298,8 +412,11 @@ def _step_eval(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
     if rc != 0:
         raise StudyError(f"eval {cell['name']}: exit status {rc}; see {eval_dir(cfg, cell) / 'study_eval.log'}")
     summ = json.loads((eval_dir(cfg, cell) / "summary.json").read_text())
-    return {"n": int(summ["n"]), "success_rate": float(summ["success_rate"]),
-            "_done": int(summ["n"]) >= expected_rollouts(cfg)}
+    done = int(summ["n"]) >= expected_rollouts(cfg)
+    if done:  # results first, summary last: a summary in the record means its results are there
+        for f in ("results.jsonl", "summary.json"):
+            _keep(eval_dir(cfg, cell) / f, record_eval_dir(cfg, cell) / f)
+    return {"n": int(summ["n"]), "success_rate": float(summ["success_rate"]), "_done": done}
 
 
 def fidelity(ours: Path, gt: Path, max_frames: int = 2000, seed: int = 0) -> dict[str, Any]:
