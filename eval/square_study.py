@@ -6,7 +6,7 @@
     python eval/square_study.py recipe=paper                   # the paper-scale recipe (GPU machine)
 
 Any recipe field can be overridden as ``key=value`` (``umi_aug.eval.square_study.StudyConfig``); ``phases`` is a
-comma list of data, train, eval, report. Rerunning the same command skips finished steps (``study_state.json``).
+comma list of data, train, eval, report. Rerunning the same command skips finished steps (the record's ``study_state.json``).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def main(argv: list[str]) -> int:
     from umi_aug.errors import UmiAugError
+    from umi_aug.eval.square_report import report_study
     from umi_aug.eval.square_study import load_recipe, run_study
     from umi_aug.runtime import configure_threads
 
@@ -44,7 +45,11 @@ def main(argv: list[str]) -> int:
         if bad:
             print(f"square_study: phases {bad} unknown; expected data, train, eval, report", file=sys.stderr)
             return 2
-        run_study(cfg, tuple(phases.split(",")))
+        steps = tuple(p for p in phases.split(",") if p != "report")
+        if steps:
+            run_study(cfg, steps)
+        if "report" in phases.split(","):
+            report_study(cfg)
     except UmiAugError as exc:
         print(f"square_study: {exc}", file=sys.stderr)
         return 2

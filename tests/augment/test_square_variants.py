@@ -356,3 +356,49 @@ def test_frames_sheet_pairs_the_right_frames(fake_export, tmp_path):
     from PIL import Image
 
     assert Image.open(out).size[0] > 800
+
+
+def test_fidelity_compares_the_same_new_frames(fake_export, tmp_path):
+    """``ours`` vs ``gt_render`` fidelity (the study's rendering-quality numbers): PSNR / SSIM over exactly the new
+    frames of the episodes both datasets hold, paired by (source demo, augmentation id); against a plain numpy
+    PSNR over the image circle, and with the gt datasets' episodes in another order."""
+    from umi_aug.augment.square_variants import write_variant
+    from umi_aug.camera.kb import unproject
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.eval.square_report import fidelity
+    from umi_aug.sim.square.camera import wrist_intrinsics
+
+    src, demos = fake_export
+    ours, gt = tmp_path / "ours.zarr.zip", tmp_path / "gt.zarr.zip"
+    rng = _fresh_rng()
+    write_variant("ours", src, ours, 3, progress=False)
+    write_variant("gt_render", src, gt, 3, progress=False,
+                  render_new=lambda e, info: np.clip(_frames(rng, info["n_new"], 3).astype(int)
+                                                     + rng.integers(-40, 40, (info["n_new"], S, S, 3)), 0, 255
+                                                     ).astype(np.uint8))
+    intr = wrist_intrinsics(S)
+    vv, uu = np.mgrid[0:S, 0:S]
+    circle = unproject(np.stack([uu, vv], -1).astype(np.float64), intr)[1]
+    ref = []
+    with ReplayBuffer.open(ours) as a, ReplayBuffer.open(gt) as b:
+        ends = np.asarray(a.episode_ends)
+        np.testing.assert_array_equal(ends, np.asarray(b.episode_ends))
+        _, _, rec, _ = _read(ours)
+        for e in range(len(ends)):
+            if rec["aug_id"][e] < 0:
+                continue
+            s0 = int(ends[e - 1]) if e else 0
+            for r in range(s0, s0 + int(rec["aug_splice_index"][e])):
+                d = (np.asarray(a["camera0_rgb"][r], np.float64) - np.asarray(b["camera0_rgb"][r], np.float64)) / 255
+                ref.append(-10 * np.log10(np.mean(d[circle] ** 2)))
+    got = fidelity(ours, gt, max_frames=10_000)
+    assert got["frames"] == len(ref) == 6 * 12 + 3  # 2 augmentations of 12 / 13 new frames per demo
+    assert got["psnr_median"] == pytest.approx(np.median(ref), abs=1e-9)
+    assert got["psnr_p5"] == pytest.approx(np.percentile(ref, 5), abs=1e-9)
+    assert 0 < got["ssim_p5"] <= got["ssim_median"] < 0.99
+    same = fidelity(ours, ours)
+    assert same["psnr_median"] == same["psnr_p5"] == float("inf") and same["ssim_p5"] == pytest.approx(1.0)
+    # pairing is by (source demo, aug id), not by row: the demo-0-only gt dataset pairs its own 25 new frames
+    write_variant("gt_render", src, tmp_path / "gt1.zarr.zip", 1, progress=False,
+                  render_new=lambda e, info: np.zeros((info["n_new"], S, S, 3), np.uint8))
+    assert fidelity(ours, tmp_path / "gt1.zarr.zip")["frames"] == 25

@@ -144,6 +144,14 @@ def test_a_fresh_machine_continues_from_the_record(tmp_path, monkeypatch):
     assert "reruns" not in state["steps"]["train/none_n10"]
     assert state["steps"]["eval/ours_n25"]["done"]
     assert json.loads((tmp_path / "record" / "evals" / "ours_n25" / "summary.json").read_text())["n"] == 200
+    # the report needs only the record
+    from umi_aug.eval.square_report import report_study
+
+    shutil.rmtree(cfg.out)
+    rep = report_study(cfg)
+    assert all(rep["metrics"][c]["n"] == 200 for c in ("none_n10", "none_n25", "ours_n10", "ours_n25"))
+    assert "not evaluated yet" not in Path(cfg.report_md).read_text()
+    assert (tmp_path / "record" / "report.json").exists()
 
 
 def test_budget_stops_before_the_next_step_and_failures_are_recorded(tmp_path, monkeypatch):

@@ -16,7 +16,7 @@ import numpy as np
 
 from umi_aug.io_utils import atomic_write_text
 
-__all__ = ["cell_metrics", "write_report", "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
+__all__ = ["cell_metrics", "fidelity", "report_study", "write_report", "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
 
 METRICS: tuple[str, ...] = ("success", "pregrasp_reached", "lifted", "inserted", "collision_table", "collision_peg")
 
@@ -57,14 +57,20 @@ def _minutes(state: dict[str, Any], step: str) -> str:
     return "—" if row is None else f"{row['seconds'] / 60.0:.1f}" + ("" if row.get("done") else " (partial)")
 
 
+def report_study(cfg) -> dict[str, Any]:
+    """The report of a study recipe from its record: :func:`write_report` over every cell of the recipe."""
+    from umi_aug.eval.square_study import load_state, study_cells
+
+    return write_report(cfg, study_cells(cfg), load_state(cfg))
+
+
 def write_report(cfg, cells: list[dict[str, Any]], state: dict[str, Any]) -> dict[str, Any]:
     """Write ``cfg.report_md`` and ``cfg.report_png`` (and ``<record>/report.json``); returns the JSON.
 
     Metrics come from the record (``record_eval_dir``), export summaries from the record's copies; the rendering
     fidelity is computed when both datasets it compares are on this machine (and kept in ``<record>/fidelity.json``),
     otherwise read from there."""
-    from umi_aug.eval.square_study import (export_path, fidelity, record_eval_dir, record_export_summary,
-                                           variant_path)
+    from umi_aug.eval.square_study import export_path, record_eval_dir, record_export_summary, variant_path
 
     metrics = {c["name"]: cell_metrics(record_eval_dir(cfg, c)) for c in cells}
     big = max(cfg.sizes)
@@ -336,3 +342,49 @@ def write_frames_sheet(cfg, n_episodes: int = 4) -> str | None:
         fig.savefig(tmp, dpi=100, format="jpg", pil_kwargs={"quality": 88})
     plt.close(fig)
     return str(out)
+
+
+def fidelity(ours: Path, gt: Path, max_frames: int = 2000, seed: int = 0) -> dict[str, Any]:
+    """PSNR / SSIM of ``ours`` vs ``gt_render`` on the new frames of the augmented episodes they share (inside the
+    fisheye image circle): median and 5th percentile."""
+    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.data import ReplayBuffer
+
+    ra, rb = read_episode_records(ours), read_episode_records(gt)
+    with ReplayBuffer.open(ours) as A, ReplayBuffer.open(gt) as B:
+        ea, eb = np.asarray(A.episode_ends), np.asarray(B.episode_ends)
+        key = lambda r, e: (int(r["aug_source_episode"][e]), int(r["aug_id"][e]))  # noqa: E731
+        ia = {key(ra, e): e for e in range(len(ea)) if ra["aug_id"][e] >= 0}
+        rows_a, rows_b = [], []
+        for e in range(len(eb)):
+            if rb["aug_id"][e] < 0 or key(rb, e) not in ia:
+                continue
+            a = ia[key(rb, e)]
+            s = int(rb["aug_splice_index"][e])
+            sa, sb = (int(ea[a - 1]) if a else 0), (int(eb[e - 1]) if e else 0)
+            rows_a += list(range(sa, sa + s))
+            rows_b += list(range(sb, sb + s))
+        rng = np.random.default_rng(seed)
+        pick = np.sort(rng.choice(len(rows_a), size=min(max_frames, len(rows_a)), replace=False)) if rows_a else []
+        import torch
+
+        from umi_aug.camera.kb import unproject
+        from umi_aug.sim.square.camera import wrist_intrinsics
+        from umi_aug.splat.losses import masked_psnr, masked_ssim
+
+        intr = wrist_intrinsics(int(A["camera0_rgb"].shape[1]))
+        vv, uu = np.mgrid[0:intr.height, 0:intr.width]
+        circle = torch.as_tensor(unproject(np.stack([uu, vv], axis=-1).astype(np.float64), intr)[1])
+        psnr, ssim = [], []
+        for i in pick:
+            x = torch.as_tensor(np.asarray(A["camera0_rgb"][rows_a[i]]), dtype=torch.float64) / 255.0
+            y = torch.as_tensor(np.asarray(B["camera0_rgb"][rows_b[i]]), dtype=torch.float64) / 255.0
+            psnr.append(masked_psnr(x, y, circle))
+            ssim.append(float(masked_ssim(x, y, circle)))
+    p, s = np.asarray(psnr), np.asarray(ssim)
+    # identical frames have PSNR = inf: no interpolation between ranks then (inf - inf would give NaN)
+    method = "linear" if np.isfinite(p).all() else "lower"
+    return {"frames": int(len(p)), "psnr_median": float(np.percentile(p, 50, method=method)) if len(p) else None,
+            "psnr_p5": float(np.percentile(p, 5, method=method)) if len(p) else None,
+            "ssim_median": float(np.median(s)) if len(s) else None,
+            "ssim_p5": float(np.percentile(s, 5)) if len(s) else None}

@@ -25,7 +25,7 @@ machine continues the study where the record stops. Steps, in the order they run
 3. ``train/<cell>`` — ``train/train.py`` on each dataset (subprocess; resumes from ``latest.ckpt``);
 4. ``eval/<cell>`` — ``eval/eval_sim.py`` on the fixed configuration subset (subprocess; resumes); its results go
    into the record when all configurations are done;
-5. ``report`` — ``<report_md>`` (tables, commands, wall times) and ``<report_png>`` (success vs data size per
+5. the report (:func:`umi_aug.eval.square_report.report_study`) — ``<report_md>`` (tables, commands, wall times) and ``<report_png>`` (success vs data size per
    variant with Wilson 95 % intervals; the cone-angle sweep; sub-goals), plus the rendering fidelity of ``ours``
    vs ``gt_render`` at the augmented poses (PSNR / SSIM, median and 5th percentile).
 
@@ -50,7 +50,7 @@ import numpy as np
 from umi_aug.errors import UmiAugError
 from umi_aug.io_utils import atomic_write_text
 
-__all__ = ["StudyConfig", "load_recipe", "study_cells", "run_study", "StudyError", "record_eval_dir",
+__all__ = ["StudyConfig", "load_recipe", "study_cells", "run_study", "load_state", "StudyError", "record_eval_dir",
            "record_export_summary", "cell_minutes_estimate"]
 
 log = logging.getLogger(__name__)
@@ -326,8 +326,9 @@ def cell_minutes_estimate(cfg: StudyConfig, state: dict[str, Any]) -> float:
     return float(np.median(mins)) if mins else 0.0
 
 
-def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eval", "report")) -> dict[str, Any]:
-    """Run (or resume) the study's steps in order; returns the state dict."""
+def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eval")) -> dict[str, Any]:
+    """Run (or resume) the study's steps of ``phases`` (data, train, eval) in order; returns the state dict. The
+    report is :func:`umi_aug.eval.square_report.report_study`."""
     from tqdm import tqdm
 
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -378,11 +379,12 @@ def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eva
     for name, fn, exists in tqdm(steps, desc="square study", unit="step"):
         if not step(name, fn, exists) and minutes_left() < cell_minutes_estimate(cfg, state.data):
             break
-    if "report" in phases:
-        from umi_aug.eval.square_report import write_report
-
-        write_report(cfg, cells, state.data)
     return state.data
+
+
+def load_state(cfg: StudyConfig) -> dict[str, Any]:
+    """The study's ``study_state.json`` (from the record; empty when there is none yet)."""
+    return _State(cfg.record / "study_state.json").data
 
 
 def _step_train(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
@@ -417,47 +419,3 @@ def _step_eval(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
         for f in ("results.jsonl", "summary.json"):
             _keep(eval_dir(cfg, cell) / f, record_eval_dir(cfg, cell) / f)
     return {"n": int(summ["n"]), "success_rate": float(summ["success_rate"]), "_done": done}
-
-
-def fidelity(ours: Path, gt: Path, max_frames: int = 2000, seed: int = 0) -> dict[str, Any]:
-    """PSNR / SSIM of ``ours`` vs ``gt_render`` on the new frames of the augmented episodes they share (inside the
-    fisheye image circle): median and 5th percentile."""
-    from umi_aug.augment.exporter import read_episode_records
-    from umi_aug.data import ReplayBuffer
-
-    ra, rb = read_episode_records(ours), read_episode_records(gt)
-    with ReplayBuffer.open(ours) as A, ReplayBuffer.open(gt) as B:
-        ea, eb = np.asarray(A.episode_ends), np.asarray(B.episode_ends)
-        key = lambda r, e: (int(r["aug_source_episode"][e]), int(r["aug_id"][e]))  # noqa: E731
-        ia = {key(ra, e): e for e in range(len(ea)) if ra["aug_id"][e] >= 0}
-        rows_a, rows_b = [], []
-        for e in range(len(eb)):
-            if rb["aug_id"][e] < 0 or key(rb, e) not in ia:
-                continue
-            a = ia[key(rb, e)]
-            s = int(rb["aug_splice_index"][e])
-            sa, sb = (int(ea[a - 1]) if a else 0), (int(eb[e - 1]) if e else 0)
-            rows_a += list(range(sa, sa + s))
-            rows_b += list(range(sb, sb + s))
-        rng = np.random.default_rng(seed)
-        pick = np.sort(rng.choice(len(rows_a), size=min(max_frames, len(rows_a)), replace=False)) if rows_a else []
-        import torch
-
-        from umi_aug.camera.kb import unproject
-        from umi_aug.sim.square.camera import wrist_intrinsics
-        from umi_aug.splat.losses import masked_psnr, masked_ssim
-
-        intr = wrist_intrinsics(int(A["camera0_rgb"].shape[1]))
-        vv, uu = np.mgrid[0:intr.height, 0:intr.width]
-        circle = torch.as_tensor(unproject(np.stack([uu, vv], axis=-1).astype(np.float64), intr)[1])
-        psnr, ssim = [], []
-        for i in pick:
-            x = torch.as_tensor(np.asarray(A["camera0_rgb"][rows_a[i]]), dtype=torch.float64) / 255.0
-            y = torch.as_tensor(np.asarray(B["camera0_rgb"][rows_b[i]]), dtype=torch.float64) / 255.0
-            psnr.append(masked_psnr(x, y, circle))
-            ssim.append(float(masked_ssim(x, y, circle)))
-    p, s = np.asarray(psnr), np.asarray(ssim)
-    return {"frames": int(len(p)), "psnr_median": float(np.median(p)) if len(p) else None,
-            "psnr_p5": float(np.percentile(p, 5)) if len(p) else None,
-            "ssim_median": float(np.median(s)) if len(s) else None,
-            "ssim_p5": float(np.percentile(s, 5)) if len(s) else None}
