@@ -231,3 +231,30 @@ def test_controls_replay_succeeds_hold_and_random_never(tmp_path, square_env):
     rnd = run_eval(_cfg(tmp_path, policy="random", configs="0:2", horizon=100, out_dir=str(tmp_path / "rnd")))
     assert hold["successes"] == 0 and hold["subgoals"]["lifted"]["count"] == 0
     assert rnd["successes"] == 0 and rnd["subgoals"]["inserted"]["count"] == 0
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 6, 7, 20, 99, 200, 1000])
+def test_median_interval_covers_the_median(n):
+    """Exact coverage of the order-statistic interval (continuous data: P(j <= #below median < k) under
+    Binomial(n, 1/2)) is >= 95 % from n = 6 on (below that even the widest interval has less); the interval is
+    ordered, holds the sample median and is made of sample values, on fresh random data with ties and outliers."""
+    from math import comb
+
+    from umi_aug.eval.stats import median_interval
+
+    lo, hi = median_interval(np.arange(n, dtype=float))  # ranks 0..n-1: the interval's 1-based ranks
+    j, k = int(lo) + 1, int(hi) + 1
+    cov = sum(comb(n, i) for i in range(j, k)) / 2**n
+    assert cov >= (0.95 if n >= 6 else 1 - 2 / 2**n)
+    rng = np.random.default_rng(int(np.random.SeedSequence().entropy % 2**32))
+    x = np.concatenate([rng.standard_cauchy(n - n // 3), np.round(rng.normal(size=n // 3))])
+    lo, hi = median_interval(x)
+    assert lo <= np.median(x) <= hi and lo in x and hi in x
+
+
+def test_median_interval_rejects_nan_and_is_nan_when_empty():
+    from umi_aug.eval.stats import median_interval
+
+    with pytest.raises(ValueError, match="1 of 3 values are not finite"):
+        median_interval([1.0, float("nan"), 2.0])
+    assert all(np.isnan(median_interval([])))

@@ -227,3 +227,34 @@ def test_report_marks_unevaluated_cells_and_counts_what_was_recorded(tmp_path, r
     assert Path(cfg.report_png).stat().st_size > 10_000
     assert rep["metrics"]["ours_n25"] is None and rep["fidelity"] is None
     assert json.loads((cfg.out / "report.json").read_text())["metrics"]["none_n10"]["n"] == n
+
+
+def test_paired_comparison_with_none_on_shared_configurations(tmp_path, rng):
+    """The per-configuration comparison that separates policies that never succeed: differences are taken on the
+    configurations both cells evaluated, signs and counts are the cell's minus the baseline's."""
+    from umi_aug.eval.square_report import cell_metrics, paired_vs, write_report
+
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[]")
+    base = rng.uniform(0.05, 0.2, 40)
+    closer = rng.random(40) < 0.7
+    delta = np.where(closer, -0.02, 0.01)  # metres: ours 20 mm closer on ~70 %, 10 mm farther elsewhere
+    row = lambda i, d, s: {"config": i, "success": s, "pregrasp_min_pos_err_m": d,  # noqa: E731
+                           "pregrasp_min_rot_err_deg": 10.0}
+    _write_results(st.eval_dir(cfg, {"name": "none_n10"}), [row(i, base[i], False) for i in range(40)])
+    # ours evaluated configs 5..44: 35 shared with none; 44 > 39 has no partner
+    _write_results(st.eval_dir(cfg, {"name": "ours_n10"}),
+                   [row(i, base[i] + delta[i] if i < 40 else 0.0, i == 7) for i in range(5, 45)])
+    p = paired_vs(st.eval_dir(cfg, {"name": "ours_n10"}), st.eval_dir(cfg, {"name": "none_n10"}))
+    d = 1000 * delta[5:40]
+    assert p["n"] == 35 and p["closer"] == int((d < 0).sum())
+    assert p["closest_mm_diff_median"] == pytest.approx(np.median(d))
+    lo, hi = p["closest_mm_diff_ci95"]
+    assert lo <= p["closest_mm_diff_median"] <= hi
+    assert all(min(abs(v + 20.0), abs(v - 10.0)) < 1e-9 for v in (lo, hi))  # order statistics of the differences
+    assert p["successes"] == 1 and p["baseline_successes"] == 0
+    assert paired_vs(st.eval_dir(cfg, {"name": "ours_n10"}), tmp_path / "nothing") is None
+    m = cell_metrics(st.eval_dir(cfg, {"name": "none_n10"}))
+    assert m["closest_pregrasp_mm_ci95"][0] <= m["closest_pregrasp_mm_median"] <= m["closest_pregrasp_mm_ci95"][1]
+    write_report(cfg, st.study_cells(cfg), {"steps": {}})
+    md = Path(cfg.report_md).read_text()
+    assert f"| ours | 10 | 35 | {np.median(d):+.0f} [" in md and f"| {p['closer']} / 35 | 1 vs 0 |" in md

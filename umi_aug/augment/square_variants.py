@@ -184,7 +184,7 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
         src_steps = (np.asarray(src.meta[SAMPLE_STEP_KEY][:], dtype=np.int64)
                      if SAMPLE_STEP_KEY in set(src.meta.array_keys()) else np.full(len(ends), -1, np.int64))
         steps: list[int] = []  # meta/umi_aug_sample_step of the output, episode by episode
-        for e in tqdm(keep, desc=f"{variant} (n={n_demos})", unit="episode", disable=not progress):
+        for e in tqdm(keep, desc=f"{label or variant} (n={n_demos})", unit="episode", disable=not progress):
             steps.append(int(src_steps[e]))
             rows = np.arange(starts[e], ends[e])
             record = {k: rec[k][e] for k in RECORD_KEYS}

@@ -16,21 +16,26 @@ import numpy as np
 
 from umi_aug.io_utils import atomic_write_text
 
-__all__ = ["cell_metrics", "fidelity", "report_study", "write_report", "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
+__all__ = ["cell_metrics", "paired_vs", "fidelity", "report_study", "write_report", "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
 
 METRICS: tuple[str, ...] = ("success", "pregrasp_reached", "lifted", "inserted", "collision_table", "collision_peg")
 
 
-def cell_metrics(eval_dir: Path) -> dict[str, Any] | None:
-    """Counts, rates and Wilson 95 % intervals of every metric ``eval_sim`` records, plus the median closest
-    approach to the pre-grasp pose, from a cell's ``results.jsonl`` (None when there is none)."""
+def _cell_rows(eval_dir: Path) -> dict[int, dict[str, Any]]:
+    """A cell's rollout records by configuration (empty when it has none)."""
     from umi_aug.eval.results import ResultsLog
-    from umi_aug.eval.stats import wilson_interval
 
     p = Path(eval_dir) / "results.jsonl"
-    if not p.exists():
-        return None
-    rows = list(ResultsLog(p).read().values())
+    return ResultsLog(p).read() if p.exists() else {}
+
+
+def cell_metrics(eval_dir: Path) -> dict[str, Any] | None:
+    """Counts, rates and Wilson 95 % intervals of every metric ``eval_sim`` records, plus the median closest
+    approach to the pre-grasp pose (mm / degrees; distribution-free 95 % interval of the median in mm), from a
+    cell's ``results.jsonl`` (None when there is none)."""
+    from umi_aug.eval.stats import median_interval, wilson_interval
+
+    rows = list(_cell_rows(eval_dir).values())
     if not rows:
         return None
     n = len(rows)
@@ -38,18 +43,62 @@ def cell_metrics(eval_dir: Path) -> dict[str, Any] | None:
     for m in METRICS:
         k = int(sum(bool(r.get(m)) for r in rows))
         out[m] = {"count": k, "rate": k / n, "wilson95": list(wilson_interval(k, n))}
-    pos = [r["pregrasp_min_pos_err_m"] for r in rows if r.get("pregrasp_min_pos_err_m") is not None]
+    pos = [1000.0 * r["pregrasp_min_pos_err_m"] for r in rows if r.get("pregrasp_min_pos_err_m") is not None]
     rot = [r["pregrasp_min_rot_err_deg"] for r in rows if r.get("pregrasp_min_rot_err_deg") is not None]
-    out["closest_pregrasp_mm_median"] = 1000.0 * float(np.median(pos)) if pos else None
+    out["closest_pregrasp_mm_median"] = float(np.median(pos)) if pos else None
+    out["closest_pregrasp_mm_ci95"] = list(median_interval(pos)) if pos else None
     out["closest_pregrasp_deg_median"] = float(np.median(rot)) if rot else None
     out["nut_moved"] = int(sum((r.get("max_nut_rise_m") or 0.0) >= 0.005 for r in rows))
     return out
+
+
+def paired_vs(eval_dir: Path, baseline_dir: Path) -> dict[str, Any] | None:
+    """A cell against a baseline cell on the configurations both evaluated (the study evaluates every cell on the
+    same ones): the per-configuration difference of the closest approach to the pre-grasp pose (cell − baseline,
+    mm; median and its distribution-free 95 % interval), in how many the cell came closer, and both success
+    counts. None when they share no configuration."""
+    from umi_aug.eval.stats import median_interval
+
+    a, b = _cell_rows(eval_dir), _cell_rows(baseline_dir)
+    key = "pregrasp_min_pos_err_m"
+    both = sorted(c for c in set(a) & set(b) if a[c].get(key) is not None and b[c].get(key) is not None)
+    if not both:
+        return None
+    d = np.array([1000.0 * (a[c][key] - b[c][key]) for c in both])
+    return {"n": len(both), "closest_mm_diff_median": float(np.median(d)),
+            "closest_mm_diff_ci95": list(median_interval(d)), "closer": int((d < 0).sum()),
+            "successes": int(sum(bool(a[c].get("success")) for c in both)),
+            "baseline_successes": int(sum(bool(b[c].get("success")) for c in both))}
 
 
 def _pct(m: dict[str, Any], key: str) -> str:
     v = m[key]
     lo, hi = v["wilson95"]
     return f"{100 * v['rate']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+
+def _closest(m: dict[str, Any]) -> str:
+    if m["closest_pregrasp_mm_median"] is None:
+        return "—"
+    lo, hi = m["closest_pregrasp_mm_ci95"]
+    return f"{m['closest_pregrasp_mm_median']:.0f} [{lo:.0f}, {hi:.0f}] / {m['closest_pregrasp_deg_median']:.1f}"
+
+
+def _paired_rows(cfg, cells) -> list[str]:
+    """Markdown rows: every evaluated cell of the main grid against ``none`` at the same data size."""
+    from umi_aug.eval.square_study import record_eval_dir
+
+    rows = []
+    for c in cells:
+        if c["theta"] is not None or c["variant"] == "none":
+            continue
+        p = paired_vs(record_eval_dir(cfg, c), record_eval_dir(cfg, {"name": f"none_n{c['n']}"}))
+        if p is None:
+            continue
+        lo, hi = p["closest_mm_diff_ci95"]
+        rows.append(f"| {c['variant']} | {c['n']} | {p['n']} | {p['closest_mm_diff_median']:+.0f} [{lo:+.0f}, "
+                    f"{hi:+.0f}] | {p['closer']} / {p['n']} | {p['successes']} vs {p['baseline_successes']} |")
+    return rows
 
 
 def _minutes(state: dict[str, Any], step: str) -> str:
@@ -121,7 +170,7 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
          f"interval over the evaluated configurations (`{cfg.eval_configs_file}`, `configs={cfg.eval_configs}`).",
          "", "## Success and sub-goals", "",
          "| variant | demos | n | success | pre-grasp reached | lifted | inserted | gripper–table | gripper–peg | "
-         "closest approach to pre-grasp (median mm / °) | train min | eval min |",
+         "closest approach to pre-grasp: median mm [95 %] / ° | train min | eval min |",
          "|---|---:|---:|---|---|---|---|---|---|---|---:|---:|"]
     for c in cells:
         if c["theta"] is not None:
@@ -131,15 +180,23 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
         if m is None:
             L.append(f"| {c['variant']} | {c['n']} | 0 | not evaluated yet | | | | | | | {tm} | {em} |")
             continue
-        ca = ("—" if m["closest_pregrasp_mm_median"] is None else
-              f"{m['closest_pregrasp_mm_median']:.0f} / {m['closest_pregrasp_deg_median']:.1f}")
+        ca = _closest(m)
         L.append(f"| {c['variant']} | {c['n']} | {m['n']} | {_pct(m, 'success')} | {_pct(m, 'pregrasp_reached')} | "
                  f"{_pct(m, 'lifted')} | {_pct(m, 'inserted')} | {_pct(m, 'collision_table')} | "
                  f"{_pct(m, 'collision_peg')} | {ca} | {tm} | {em} |")
+    paired = _paired_rows(cfg, cells)
+    if paired:
+        L += ["", "## Against `none`, configuration by configuration", "",
+              "Every cell is evaluated on the same configurations, so each can be paired with `none` at the same "
+              "data size: the difference of the closest approach to the pre-grasp pose (negative = closer than "
+              "`none`; median and its distribution-free 95 % interval), in how many configurations it came closer, "
+              "and the successes of both.", "",
+              "| variant | demos | paired configurations | Δ closest approach, median mm [95 %] | closer | "
+              "successes (cell vs none) |", "|---|---:|---:|---|---:|---|", *paired]
     sweep = [c for c in cells if c["theta"] is not None or (c["variant"] == "ours" and c["n"] == cfg.sweep_size)]
     if any(c["theta"] is not None for c in cells):
         L += ["", f"## Cone-angle sweep (`ours`, {cfg.sweep_size} demos, r = {cfg.radius_m} m)", "",
-              "| θ (°) | n | success | pre-grasp reached | lifted | closest approach (median mm / °) |",
+              "| θ (°) | n | success | pre-grasp reached | lifted | closest approach: median mm [95 %] / ° |",
               "|---:|---:|---|---|---|---|"]
         for c in sorted(sweep, key=lambda c: cfg.theta_deg if c["theta"] is None else c["theta"]):
             m = metrics[c["name"]]
@@ -147,8 +204,7 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
             if m is None:
                 L.append(f"| {th:g} | 0 | not evaluated yet | | | |")
                 continue
-            ca = ("—" if m["closest_pregrasp_mm_median"] is None else
-                  f"{m['closest_pregrasp_mm_median']:.0f} / {m['closest_pregrasp_deg_median']:.1f}")
+            ca = _closest(m)
             L.append(f"| {th:g} | {m['n']} | {_pct(m, 'success')} | {_pct(m, 'pregrasp_reached')} | "
                      f"{_pct(m, 'lifted')} | {ca} |")
     L += ["", "## Rendering fidelity of `ours` against `gt_render` at the augmented poses", ""]
@@ -184,6 +240,12 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
     atomic_write_text(p, "\n".join(L))
 
 
+def _legend(ax, **kw) -> None:
+    """A legend only where something was drawn (matplotlib warns otherwise)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(**kw)
+
+
 def _write_png(cfg, cells, metrics) -> None:
     import matplotlib
 
@@ -192,7 +254,19 @@ def _write_png(cfg, cells, metrics) -> None:
 
     from umi_aug.io_utils import atomic_path
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    fig, axes = plt.subplots(1, 4, figsize=(20, 4.2))
+    for v in cfg.variants:  # the metric that separates policies that never succeed
+        pts = sorted((c["n"], metrics[c["name"]]) for c in cells if c["variant"] == v and c["theta"] is None
+                     and metrics[c["name"]] is not None and metrics[c["name"]]["closest_pregrasp_mm_median"] is not None)
+        if pts:
+            med = np.array([m["closest_pregrasp_mm_median"] for _, m in pts])
+            ci = np.array([m["closest_pregrasp_mm_ci95"] for _, m in pts])
+            axes[2].errorbar([n for n, _ in pts], med, yerr=[med - ci[:, 0], ci[:, 1] - med], marker="o", capsize=3,
+                             label=v)
+    axes[2].set_xlabel("source demos")
+    axes[2].set_ylabel("mm")
+    axes[2].set_title("closest approach to pre-grasp (median, 95 %)")
+    _legend(axes[2], fontsize=8)
     for ax, key, title in ((axes[0], "success", "task success"), (axes[1], "pregrasp_reached", "pre-grasp reached")):
         for v in cfg.variants:
             xs, ys, lo, hi = [], [], [], []
@@ -210,8 +284,8 @@ def _write_png(cfg, cells, metrics) -> None:
         ax.set_xlabel("source demos")
         ax.set_ylabel("%")
         ax.set_title(f"{title} (Wilson 95 %)")
-        ax.legend(fontsize=8)
-    ax = axes[2]
+        _legend(ax, fontsize=8)
+    ax = axes[3]
     pts = []
     for c in cells:
         th = cfg.theta_deg if c["theta"] is None else c["theta"]
@@ -227,7 +301,16 @@ def _write_png(cfg, cells, metrics) -> None:
     ax.set_xlabel("cone half-angle θ (°)")
     ax.set_ylabel("%")
     ax.set_title(f"cone sweep, ours, {cfg.sweep_size} demos")
-    ax.legend(fontsize=8)
+    _legend(ax, fontsize=8, loc="upper left")
+    cp = [(th, m) for th, m in pts if m["closest_pregrasp_mm_median"] is not None]
+    if cp:
+        ax2 = ax.twinx()
+        med = np.array([m["closest_pregrasp_mm_median"] for _, m in cp])
+        ci = np.array([m["closest_pregrasp_mm_ci95"] for _, m in cp])
+        ax2.errorbar([th for th, _ in cp], med, yerr=[med - ci[:, 0], ci[:, 1] - med], color="k", linestyle="--",
+                     marker="s", capsize=3, label="closest approach (median mm, 95 %)")
+        ax2.set_ylabel("mm")
+        _legend(ax2, fontsize=8, loc="upper right")
     fig.suptitle(f"square study — {cfg.name}")
     fig.tight_layout()
     p = Path(cfg.report_png)

@@ -7,7 +7,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-__all__ = ["wilson_interval", "summarise"]
+__all__ = ["wilson_interval", "median_interval", "summarise"]
 
 #: two-sided 95 % normal quantile
 Z95: float = 1.959963984540054
@@ -33,6 +33,25 @@ def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, floa
     lo = 0.0 if k == 0 else max(0.0, centre - half)  # exact ends (the formula leaves ~1e-19 rounding there)
     hi = 1.0 if k == n else min(1.0, centre + half)
     return lo, hi
+
+
+def median_interval(values: Iterable[float], z: float = Z95) -> tuple[float, float]:
+    """Distribution-free 95 % confidence interval of a median: the order statistics ``x(j)``, ``x(k)`` with
+    ``j = floor(n/2 - z sqrt(n)/2)``, ``k = ceil(1 + n/2 + z sqrt(n)/2)`` (1-based, clipped to [1, n]) — the normal
+    approximation of the binomial(n, 1/2) ranks. Same unit as ``values``; ``(nan, nan)`` for no values.
+
+    Used for the closest approach to the pre-grasp pose and paired per-configuration differences, which separate
+    policies that never succeed."""
+    x = np.sort(np.asarray(list(values), dtype=np.float64))
+    n = len(x)
+    if n == 0:
+        return float("nan"), float("nan")
+    if not np.isfinite(x).all():
+        raise ValueError(f"median_interval: {int((~np.isfinite(x)).sum())} of {n} values are not finite")
+    half = z * math.sqrt(n) / 2.0
+    j = min(max(int(math.floor(n / 2.0 - half)), 1), n)
+    k = min(max(int(math.ceil(1.0 + n / 2.0 + half)), 1), n)
+    return float(x[j - 1]), float(x[k - 1])
 
 
 def _rate(records: list[dict[str, Any]], key: str) -> dict[str, Any]:
