@@ -233,6 +233,9 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
         L.append(f"| {name} | {_minutes(state, name)} |")
     ex = cells[0]
     L += ["", "## Commands", "", "```", f"python eval/square_study.py recipe={cfg.name}   # all steps, resumable", "",
+          "# the source demos (the study makes them when demos_dir lacks them):",
+          f"umi-aug square-demos --n {max(cfg.sizes)} --image-size {cfg.image_size} --workers {cfg.augment_workers} "
+          f"--out {cfg.demos_dir}", "",
           "# what one cell runs (here " + ex["name"] + "):", " ".join(train_command(cfg, ex)[1:]),
           " ".join(eval_command(cfg, ex)[1:]), "```", ""]
     p = Path(cfg.report_md)
