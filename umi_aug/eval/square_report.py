@@ -314,6 +314,9 @@ def _write_png(cfg, cells, metrics) -> None:
                      marker="s", capsize=3, label="closest approach (median mm, 95 %)")
         ax2.set_ylabel("mm")
         _legend(ax2, fontsize=8, loc="upper right")
+    for a in axes[:3]:
+        a.set_xticks(sorted(cfg.sizes))
+    axes[3].set_xticks(sorted({float(t) for t in [*cfg.sweep_thetas, cfg.theta_deg]}))
     fig.suptitle(f"square study — {cfg.name}")
     fig.tight_layout()
     p = Path(cfg.report_png)
