@@ -239,7 +239,7 @@ def test_paired_comparison_with_none_on_shared_configurations(tmp_path, rng):
     closer = rng.random(40) < 0.7
     delta = np.where(closer, -0.02, 0.01)  # metres: ours 20 mm closer on ~70 %, 10 mm farther elsewhere
     row = lambda i, d, s: {"config": i, "success": s, "pregrasp_min_pos_err_m": d,  # noqa: E731
-                           "pregrasp_min_rot_err_deg": 10.0}
+                           "pregrasp_min_rot_err_deg": 10.0 + (i % 7) + 1000 * d}
     _write_results(st.eval_dir(cfg, {"name": "none_n10"}), [row(i, base[i], False) for i in range(40)])
     # ours evaluated configs 5..44: 35 shared with none; 44 > 39 has no partner
     _write_results(st.eval_dir(cfg, {"name": "ours_n10"}),
@@ -251,10 +251,11 @@ def test_paired_comparison_with_none_on_shared_configurations(tmp_path, rng):
     lo, hi = p["closest_mm_diff_ci95"]
     assert lo <= p["closest_mm_diff_median"] <= hi
     assert all(min(abs(v + 20.0), abs(v - 10.0)) < 1e-9 for v in (lo, hi))  # order statistics of the differences
+    assert p["closest_deg_diff_median"] == pytest.approx(np.median(d)) and p["closer_deg"] == p["closer"]
     assert p["successes"] == 1 and p["baseline_successes"] == 0
     assert paired_vs(st.eval_dir(cfg, {"name": "ours_n10"}), tmp_path / "nothing") is None
     m = cell_metrics(st.eval_dir(cfg, {"name": "none_n10"}))
     assert m["closest_pregrasp_mm_ci95"][0] <= m["closest_pregrasp_mm_median"] <= m["closest_pregrasp_mm_ci95"][1]
     write_report(cfg, st.study_cells(cfg), {"steps": {}})
     md = Path(cfg.report_md).read_text()
-    assert f"| ours | 10 | 35 | {np.median(d):+.0f} [" in md and f"| {p['closer']} / 35 | 1 vs 0 |" in md
+    assert f"| ours | 10 | 35 | {np.median(d):+.0f} [" in md and f"| {p['closer']} / 35 | {np.median(d):+.1f} [" in md and "| 1 vs 0 |" in md

@@ -54,19 +54,24 @@ def cell_metrics(eval_dir: Path) -> dict[str, Any] | None:
 
 def paired_vs(eval_dir: Path, baseline_dir: Path) -> dict[str, Any] | None:
     """A cell against a baseline cell on the configurations both evaluated (the study evaluates every cell on the
-    same ones): the per-configuration difference of the closest approach to the pre-grasp pose (cell − baseline,
-    mm; median and its distribution-free 95 % interval), in how many the cell came closer, and both success
-    counts. None when they share no configuration."""
+    same ones): the per-configuration differences of the closest approach to the pre-grasp pose (cell − baseline;
+    position in mm and orientation in degrees, each the smallest error over the rollout; median and its
+    distribution-free 95 % interval), in how many configurations the cell came closer, and both success counts.
+    None when they share no configuration."""
     from umi_aug.eval.stats import median_interval
 
     a, b = _cell_rows(eval_dir), _cell_rows(baseline_dir)
-    key = "pregrasp_min_pos_err_m"
-    both = sorted(c for c in set(a) & set(b) if a[c].get(key) is not None and b[c].get(key) is not None)
+    key, rkey = "pregrasp_min_pos_err_m", "pregrasp_min_rot_err_deg"
+    both = sorted(c for c in set(a) & set(b)
+                  if all(r[c].get(k) is not None for r in (a, b) for k in (key, rkey)))
     if not both:
         return None
     d = np.array([1000.0 * (a[c][key] - b[c][key]) for c in both])
+    dr = np.array([a[c][rkey] - b[c][rkey] for c in both])
     return {"n": len(both), "closest_mm_diff_median": float(np.median(d)),
             "closest_mm_diff_ci95": list(median_interval(d)), "closer": int((d < 0).sum()),
+            "closest_deg_diff_median": float(np.median(dr)), "closest_deg_diff_ci95": list(median_interval(dr)),
+            "closer_deg": int((dr < 0).sum()),
             "successes": int(sum(bool(a[c].get("success")) for c in both)),
             "baseline_successes": int(sum(bool(b[c].get("success")) for c in both))}
 
@@ -96,8 +101,10 @@ def _paired_rows(cfg, cells) -> list[str]:
         if p is None:
             continue
         lo, hi = p["closest_mm_diff_ci95"]
+        rlo, rhi = p["closest_deg_diff_ci95"]
         rows.append(f"| {c['variant']} | {c['n']} | {p['n']} | {p['closest_mm_diff_median']:+.0f} [{lo:+.0f}, "
-                    f"{hi:+.0f}] | {p['closer']} / {p['n']} | {p['successes']} vs {p['baseline_successes']} |")
+                    f"{hi:+.0f}] | {p['closer']} / {p['n']} | {p['closest_deg_diff_median']:+.1f} [{rlo:+.1f}, "
+                    f"{rhi:+.1f}] | {p['closer_deg']} / {p['n']} | {p['successes']} vs {p['baseline_successes']} |")
     return rows
 
 
@@ -188,11 +195,13 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
     if paired:
         L += ["", "## Against `none`, configuration by configuration", "",
               "Every cell is evaluated on the same configurations, so each can be paired with `none` at the same "
-              "data size: the difference of the closest approach to the pre-grasp pose (negative = closer than "
-              "`none`; median and its distribution-free 95 % interval), in how many configurations it came closer, "
-              "and the successes of both.", "",
-              "| variant | demos | paired configurations | Δ closest approach, median mm [95 %] | closer | "
-              "successes (cell vs none) |", "|---|---:|---:|---|---:|---|", *paired]
+              "data size: the differences of the closest approach to the pre-grasp pose, in position and in "
+              "orientation (each the smallest error over the rollout; negative = closer than `none`; median and its "
+              "distribution-free 95 % interval), in how many configurations it came closer, and the successes of "
+              "both.", "",
+              "| variant | demos | paired configurations | Δ closest position, median mm [95 %] | closer | "
+              "Δ closest orientation, median ° [95 %] | closer | successes (cell vs none) |",
+              "|---|---:|---:|---|---:|---|---:|---|", *paired]
     sweep = [c for c in cells if c["theta"] is not None or (c["variant"] == "ours" and c["n"] == cfg.sweep_size)]
     if any(c["theta"] is not None for c in cells):
         L += ["", f"## Cone-angle sweep (`ours`, {cfg.sweep_size} demos, r = {cfg.radius_m} m)", "",

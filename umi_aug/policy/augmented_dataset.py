@@ -301,6 +301,9 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         if self.original.task.use_wrt_start:
             extra.start_pose = [np.concatenate(start)]
         extra.episode_ends = np.asarray(ends, np.int64)
+        # planned episodes are whole episodes: every step a sample (-1), the originals keep their own setting
+        extra.sample_step = np.concatenate([np.asarray(self.original.sample_step, np.int64),
+                                            np.full(len(ends) - len(self.original.sample_step), -1, np.int64)])
         extra.val_mask = np.zeros(len(ends), bool)
         extra.val_mask[: len(self.original.val_mask)] = self.original.val_mask
         extra.split = "train"
