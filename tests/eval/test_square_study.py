@@ -36,6 +36,11 @@ def test_recipes_load_and_bad_keys_are_named(tmp_path):
     with pytest.raises(st.StudyError, match="sizes"):
         _cfg(tmp_path, "sizes=[0]")
     assert st.expected_rollouts(_cfg(tmp_path, "eval_configs='3,7,9'")) == 3
+    bad = tmp_path / "demos"
+    bad.mkdir()
+    (bad / "report.json").write_text("{not json")
+    with pytest.raises(st.StudyError, match="report.json: unreadable square-demos report"):
+        st.demos_ready(_cfg(tmp_path, f"demos_dir={bad}"))
 
 
 def test_cells_main_grid_then_sweep(tmp_path):

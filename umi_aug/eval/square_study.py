@@ -281,7 +281,10 @@ def demos_ready(cfg: StudyConfig) -> bool:
     p = Path(cfg.demos_dir) / "report.json"
     if not p.exists():
         return False
-    rep = json.loads(p.read_text())
+    try:
+        rep = json.loads(p.read_text())
+    except ValueError as exc:
+        raise StudyError(f"{p}: unreadable square-demos report ({exc}); rerun umi-aug square-demos there") from None
     return (int(rep.get("successes", 0)) >= max(cfg.sizes)
             and int(rep.get("config", {}).get("image_size", cfg.image_size)) == int(cfg.image_size))
 
