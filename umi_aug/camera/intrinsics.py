@@ -15,7 +15,7 @@ from typing import Any, Literal, Mapping
 
 import numpy as np
 
-from umi_aug.camera.kb import THETA_PI_MARGIN, kb_theta_d, theta_fold as _theta_fold
+from umi_aug.camera.kb_poly import THETA_PI_MARGIN, kb_theta_d, theta_fold as _theta_fold
 from umi_aug.errors import CameraError
 
 __all__ = ["FisheyeIntrinsics", "PixelCentre"]
