@@ -191,3 +191,41 @@ def is_inside(path: str | os.PathLike, other: str | os.PathLike) -> bool:
     """True when ``path`` is ``other`` or lies inside it (both resolved)."""
     a, b = Path(path).resolve(), Path(other).resolve()
     return a == b or b in a.parents
+
+
+class RunLockedError(OSError):
+    """Another live process holds the :func:`exclusive_run_lock` of the same file."""
+
+
+@contextlib.contextmanager
+def exclusive_run_lock(path: str | os.PathLike, what: str) -> Iterator[Path]:
+    """Hold an exclusive, NON-blocking ``flock`` on ``path`` for the duration of the block, so that two runs of a
+    long job (``what``) cannot write the same outputs at once. The holder's pid and start time are written into
+    the file; the kernel releases the lock when the holder dies, so a crashed run never blocks the next one.
+
+    Raises:
+        RunLockedError: another process holds it; the message names ``what``, the lock file and the holder's pid.
+    """
+    import fcntl
+    import json
+    import time
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(p, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+            except ValueError:
+                holder = {}
+            raise RunLockedError(
+                f"{p}: another {what} is running (pid {holder.get('pid', '?')}, started "
+                f"{holder.get('started', '?')}); wait for it to finish or stop it, then rerun") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps({"pid": os.getpid(), "started": time.strftime("%Y-%m-%d %H:%M:%S")}).encode(), 0)
+        yield p
+    finally:
+        os.close(fd)  # closing the descriptor releases the flock

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from umi_aug.io_utils import atomic_path, atomic_write_bytes, atomic_write_text
+from umi_aug.io_utils import RunLockedError, atomic_path, atomic_write_bytes, atomic_write_text, exclusive_run_lock
 
 
 def _leftovers(d):
@@ -56,3 +56,37 @@ def test_overwrite_false_refuses_existing(tmp_path):
         with atomic_path(p, overwrite=False) as tmp:
             tmp.write_text("new")
     assert p.read_text() == "keep"
+
+
+def test_exclusive_run_lock_refuses_a_second_holder_and_frees_on_exit(tmp_path):
+    lock = tmp_path / "out" / ".run.lock"
+    with exclusive_run_lock(lock, "test job"):
+        with pytest.raises(RunLockedError, match=r"another test job is running \(pid \d+") as ei:
+            with exclusive_run_lock(lock, "test job"):
+                pass
+        assert str(lock) in str(ei.value)
+    with exclusive_run_lock(lock, "test job"):  # released on exit
+        pass
+
+
+def test_exclusive_run_lock_of_a_killed_holder_is_free(tmp_path):
+    """The kernel drops a dead holder's lock: a crashed run never blocks the next one (no stale-lock cleanup)."""
+    import subprocess
+    import sys
+    import time
+
+    lock = tmp_path / ".run.lock"
+    code = ("import sys, time; from umi_aug.io_utils import exclusive_run_lock\n"
+            "with exclusive_run_lock(sys.argv[1], 'holder'):\n    print('held', flush=True); time.sleep(60)")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(lock)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "held"
+        with pytest.raises(RunLockedError, match=f"pid {proc.pid}"):
+            with exclusive_run_lock(lock, "holder"):
+                pass
+    finally:
+        proc.kill()
+        proc.wait(timeout=30)
+    t0 = time.monotonic()
+    with exclusive_run_lock(lock, "holder"):
+        assert time.monotonic() - t0 < 5

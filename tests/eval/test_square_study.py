@@ -130,6 +130,23 @@ def test_step_order_resume_and_unfinished_eval(tmp_path, monkeypatch):
     assert calls == ["eval/ours_n25"]  # a rerun does only what is not done (eval_sim resumes its own results)
 
 
+def test_a_second_concurrent_run_is_refused_before_touching_anything(tmp_path, monkeypatch):
+    """Two runs on the same outputs or record would interleave steps and overwrite each other's state."""
+    from umi_aug.io_utils import exclusive_run_lock
+
+    cfg = _cfg(tmp_path, "variants=[none]", "sweep_thetas=[]", f"record_dir={tmp_path / 'record'}",
+               f"demos_dir={tmp_path / 'demos'}")
+    calls: list[str] = []
+    _fake_steps(monkeypatch, calls)
+    for held in (cfg.out / st.STUDY_LOCK, cfg.record / st.STUDY_LOCK):
+        with exclusive_run_lock(held, "square study"):
+            with pytest.raises(st.StudyError, match="another square study .* is running"):
+                st.run_study(cfg, ("data", "train", "eval"))
+        assert calls == [] and not (cfg.record / "study_state.json").exists()
+    st.run_study(cfg, ("data", "train", "eval"))  # free again
+    assert calls and (cfg.record / "study_state.json").exists()
+
+
 def test_a_fresh_machine_continues_from_the_record(tmp_path, monkeypatch):
     import shutil
 

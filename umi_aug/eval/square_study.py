@@ -56,6 +56,10 @@ __all__ = ["StudyConfig", "load_recipe", "study_cells", "run_study", "load_state
 log = logging.getLogger(__name__)
 
 
+#: Lock file (in ``out_dir`` and in ``record_dir``) held by a running study (:func:`run_study`).
+STUDY_LOCK = ".study.lock"
+
+
 class StudyError(UmiAugError):
     """A study recipe or step failed (names the step)."""
 
@@ -332,6 +336,23 @@ def cell_minutes_estimate(cfg: StudyConfig, state: dict[str, Any]) -> float:
 def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eval")) -> dict[str, Any]:
     """Run (or resume) the study's steps of ``phases`` (data, train, eval) in order; returns the state dict. The
     report is :func:`umi_aug.eval.square_report.report_study`."""
+    from umi_aug.io_utils import RunLockedError, exclusive_run_lock
+
+    # one run at a time per outputs and record: a second run would interleave its steps and overwrite the state
+    import contextlib
+
+    locks = {(cfg.out / STUDY_LOCK).resolve(): f"square study on {cfg.out}",
+             (cfg.record / STUDY_LOCK).resolve(): f"square study recording into {cfg.record}"}  # one if they coincide
+    try:
+        with contextlib.ExitStack() as stack:
+            for path, what in locks.items():
+                stack.enter_context(exclusive_run_lock(path, what))
+            return _run_study_locked(cfg, phases)
+    except RunLockedError as exc:
+        raise StudyError(str(exc)) from None
+
+
+def _run_study_locked(cfg: StudyConfig, phases: tuple[str, ...]) -> dict[str, Any]:
     from tqdm import tqdm
 
     cfg.out.mkdir(parents=True, exist_ok=True)
