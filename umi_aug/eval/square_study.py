@@ -336,11 +336,11 @@ def cell_minutes_estimate(cfg: StudyConfig, state: dict[str, Any]) -> float:
 def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eval")) -> dict[str, Any]:
     """Run (or resume) the study's steps of ``phases`` (data, train, eval) in order; returns the state dict. The
     report is :func:`umi_aug.eval.square_report.report_study`."""
+    import contextlib
+
     from umi_aug.io_utils import RunLockedError, exclusive_run_lock
 
     # one run at a time per outputs and record: a second run would interleave its steps and overwrite the state
-    import contextlib
-
     locks = {(cfg.out / STUDY_LOCK).resolve(): f"square study on {cfg.out}",
              (cfg.record / STUDY_LOCK).resolve(): f"square study recording into {cfg.record}"}  # one if they coincide
     try:
