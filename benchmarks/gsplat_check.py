@@ -135,13 +135,15 @@ def compare_images(g: Gaussians, res: int, poses: list[np.ndarray], out: Path | 
         a_c, a_s = c.alpha.numpy(), s.alpha.numpy()
         both = (a_c > 0.5) & (a_s > 0.5) & front
         dc, ds = c.ray_depth.numpy()[both], s.ray_depth.numpy()[both]
+        centre = valid & (theta <= math.radians(30))
+        seen = valid & (a_s > 1e-3)
         rel = np.abs(ds - dc) / np.maximum(dc, 1e-9)
         rows.append({
             "scene": tag, "res": res, "pose": i, "pad_canvas": pad_canvas,
-            "psnr_theta_0_30_db": _psnr(rgb_c[valid & (theta <= math.radians(30))], rgb_s[valid & (theta <= math.radians(30))]),
+            "psnr_theta_0_30_db": _psnr(rgb_c[centre], rgb_s[centre]),
             "psnr_theta_80_90_db": _psnr(rgb_c[valid & (theta > math.radians(80)) & front],
                                          rgb_s[valid & (theta > math.radians(80)) & front]),
-            "theta_max_gsplat_deg": float(np.degrees(theta[valid & (a_s > 1e-3)].max())) if (valid & (a_s > 1e-3)).any() else None,
+            "theta_max_gsplat_deg": float(np.degrees(theta[seen].max())) if seen.any() else None,
             "psnr_front_db": _psnr(rgb_c[front], rgb_s[front]),
             "psnr_rim_db": _psnr(rgb_c[rim], rgb_s[rim]) if rim.any() else None,
             "rim_px": int(rim.sum()), "front_px": int(front.sum()),
@@ -149,7 +151,7 @@ def compare_images(g: Gaussians, res: int, poses: list[np.ndarray], out: Path | 
             "alpha_mean_rim_cpu": float(a_c[rim].mean()) if rim.any() else None,
             "alpha_mean_rim_gsplat": float(a_s[rim].mean()) if rim.any() else None,
             "depth_rel_median": float(np.median(rel)) if rel.size else None,
-            "finite": bool(np.isfinite(rgb_s).all() and np.isfinite(a_s).all() and np.isfinite(s.ray_depth.numpy()).all()),
+            "finite": bool(all(np.isfinite(x).all() for x in (rgb_s, a_s, s.ray_depth.numpy()))),
         })
         diff = np.clip(4.0 * np.abs(rgb_c - rgb_s), 0, 1)
         panels.append(np.concatenate([np.clip(rgb_c, 0, 1), np.clip(rgb_s, 0, 1), diff], axis=1))
@@ -171,7 +173,8 @@ def diagnose(res: int, seed: int) -> list[dict]:
     m = valid & (theta <= math.radians(75))
     cases = [
         ("isotropic, SH0, no filter", dict(anisotropy=1.0, sh_degree=0), "none", False),
-        ("isotropic 3-15 px, SH0, no filter", dict(anisotropy=1.0, sh_degree=0, sigma_px_range=(3.0, 15.0)), "none", False),
+        ("isotropic 3-15 px, SH0, no filter", dict(anisotropy=1.0, sh_degree=0, sigma_px_range=(3.0, 15.0)), "none",
+         False),
         ("anisotropic x4, SH0, no filter", dict(anisotropy=4.0, sh_degree=0), "none", False),
         ("anisotropic x4, SH0, no filter, conjugate quats", dict(anisotropy=4.0, sh_degree=0), "none", True),
         ("anisotropic x4, SH0, inria filter", dict(anisotropy=4.0, sh_degree=0), "inria", False),
@@ -229,7 +232,8 @@ def compare_gradients(g: Gaussians, res: int, T: np.ndarray, seed: int) -> dict:
             pad = gsplat_canvas_pad(intr)
             rgb = colors[0, pad : pad + intr.height, pad : pad + intr.width, :3].cpu()
         (rgb * w).sum().backward()
-        grads[name] = {k: getattr(gg, k).grad.detach().double() for k in ("means", "log_scales", "logit_opacities", "sh0")}
+        grads[name] = {k: getattr(gg, k).grad.detach().double()
+                       for k in ("means", "log_scales", "logit_opacities", "sh0")}
     seen = (grads["cpu"]["logit_opacities"].abs() > 0) & (grads["gsplat"]["logit_opacities"].abs() > 0)
     out = {"n_seen_both": int(seen.sum()), "n_seen_cpu": int((grads["cpu"]["logit_opacities"].abs() > 0).sum()),
            "n_seen_gsplat": int((grads["gsplat"]["logit_opacities"].abs() > 0).sum())}
@@ -258,7 +262,8 @@ def time_renderers(g: Gaussians, res: int, repeats: int, batch: int) -> dict:
     t_full = _median_time(lambda: render_gsplat(g, T, intr), repeats)
     t_res = _median_time(lambda: render_gsplat(g_cuda, T, intr), repeats)
     return {"n": g.n, "res": res, "cpu_ms": 1e3 * t_cpu, "gsplat_ms": 1e3 * t_gs, "gsplat_batched_ms": 1e3 * t_gsb,
-            "render_gsplat_ms": 1e3 * t_full, "render_gsplat_resident_ms": 1e3 * t_res, "speedup": t_cpu / t_gs, "speedup_batched": t_cpu / t_gsb}
+            "render_gsplat_ms": 1e3 * t_full, "render_gsplat_resident_ms": 1e3 * t_res, "speedup": t_cpu / t_gs,
+            "speedup_batched": t_cpu / t_gsb}
 
 
 def _table(rows: list[dict], cols: list[str]) -> str:
@@ -297,7 +302,8 @@ def main(argv: list[str] | None = None) -> int:
 
     t_import = time.perf_counter() - t0
     env = {"gsplat": gsplat.__version__, "torch": torch.__version__, "cuda": torch.version.cuda,
-           "gpu": torch.cuda.get_device_name(0), "cpu_threads": threads, "cpu": platform.processor() or platform.machine(),
+           "gpu": torch.cuda.get_device_name(0), "cpu_threads": threads,
+           "cpu": platform.processor() or platform.machine(),
            "gsplat_import_s": t_import}
     print(json.dumps(env))
     rng = np.random.default_rng(args.seed)
@@ -326,8 +332,8 @@ def main(argv: list[str] | None = None) -> int:
         for res in args.res:
             result["speed"].append(time_renderers(g, res, args.repeats, args.batch))
             print(json.dumps(result["speed"][-1]))
-    speed_cols = ["n", "res", "cpu_ms", "gsplat_ms", "gsplat_batched_ms", "render_gsplat_ms", "render_gsplat_resident_ms",
-                  "speedup", "speedup_batched"]
+    speed_cols = ["n", "res", "cpu_ms", "gsplat_ms", "gsplat_batched_ms", "render_gsplat_ms",
+                  "render_gsplat_resident_ms", "speedup", "speedup_batched"]
     (args.out / "gsplat_check.json").write_text(json.dumps(result, indent=1))
     md = [f"# gsplat {env['gsplat']} vs the CPU renderer", "",
           f"{env['gpu']}, torch {env['torch']} (CUDA {env['cuda']}); CPU renderer on {threads} threads.", "",

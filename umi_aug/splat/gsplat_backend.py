@@ -119,8 +119,9 @@ def gsplat_rasterization_kwargs(
         ``Ks [1,3,3]`` (principal point + 0.5, gsplat's pixel convention), ``radial_coeffs [1,4]`` (k1..k4),
         ``width``, ``height``, ``sh_degree``, ``near_plane``, ``far_plane``, ``eps2d``, ``rasterize_mode``,
         ``camera_model="fisheye"``, ``with_ut=True``, ``with_eval3d=True``, ``packed=False``,
-        ``render_mode="RGB"`` (gsplat's eval3d path renders 3 channels only); all tensors in ``dtype`` on ``device``. With ``differentiable=True`` the
-        Gaussian tensors stay in the autograd graph of the scene's parameters (for a gsplat training step).
+        ``render_mode="RGB"`` (gsplat's eval3d path renders 3 channels only); all tensors in ``dtype`` on
+        ``device``. With ``differentiable=True`` the Gaussian tensors stay in the autograd graph of the scene's
+        parameters (for a gsplat training step).
         With ``pad_canvas`` (default) ``width``/``height``/``Ks`` describe the image padded by
         :func:`gsplat_canvas_pad` pixels on every side (gsplat's inscribed-circle cut): crop the result with
         ``[pad:pad + height, pad:pad + width]``.
