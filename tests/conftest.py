@@ -14,6 +14,10 @@ os.environ.setdefault("MKL_NUM_THREADS", "2")
 # kernels). Read by oneDNN at its first primitive, so set before any test trains. Not a umi-aug bug; README,
 # "Known issue", tells users the same workaround.
 os.environ.setdefault("DNNL_MAX_CPU_ISA", "AVX2")
+# no background kernel compile (umi_aug.splat.warmup) next to the tests: they compile what they call themselves,
+# and a child compiling beside them on 2 cores would only make their timings noisier (tests/splat/test_warmup.py
+# runs it on purpose)
+os.environ.setdefault("UMI_AUG_NO_WARMUP", "1")
 
 import zlib
 

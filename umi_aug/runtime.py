@@ -38,6 +38,11 @@ def configure_threads(n_threads: int | None = None) -> int:
     # stage (numba rasteriser, MuJoCo, JPEG-XL) needs; measured 64 → 42 ms/frame for the 100k-Gaussian render.
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")
     import sys
+    import warnings
+
+    # numba tries its TBB threading layer first and warns when the installed TBB is too old (it then uses OpenMP,
+    # which is what runs here anyway): a library message a user can do nothing about, kept off the console.
+    warnings.filterwarnings("ignore", message="The TBB threading layer requires TBB version", module=r"numba(\.|$)")
 
     if "torch" in sys.modules:
         torch = sys.modules["torch"]

@@ -42,6 +42,9 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
     p.add_argument("--workers", type=int, default=1, help="episodes planned/rendered in parallel")
     p.add_argument("--ray-address", default=None, help="existing Ray cluster (default: start a local one)")
     p.add_argument("--no-original", action="store_true", help="do not copy the original episodes")
+    p.add_argument("--jpegxl-effort", default="4", metavar="1..9|default",
+                   help="libjxl encoder effort of the new frames (4: ~3x faster than libjxl's default 7 with the "
+                        "same PSNR; 'default': the library's own, as UMI's writer)")
     p.add_argument("--restart", action="store_true", help="discard a previous/interrupted export at --out instead of resuming (only one "
                    "umi-aug wrote: inputs and other folders are refused)")
     p.add_argument("--no-pictures", action="store_true")
@@ -83,7 +86,20 @@ def config_from_args(args: argparse.Namespace):
         recon=dataclasses.replace(base.recon, sfm=dataclasses.replace(base.recon.sfm, mode=args.sfm_mode)),
         obstacle=ObstacleConfig(assets=tuple(args.obstacle)) if args.obstacle else ObstacleConfig(),
         overlay=OverlayConfig(mask=args.mask), include_original=not args.no_original,
-        executor=args.executor, workers=args.workers, ray_address=args.ray_address)
+        executor=args.executor, workers=args.workers, ray_address=args.ray_address,
+        jpegxl_effort=_effort_arg(getattr(args, "jpegxl_effort", "4")))
+
+
+def _effort_arg(value: str | int | None) -> int | None:
+    """``--jpegxl-effort``: an int 1..9, or ``default``/``none`` (libjxl's own)."""
+    from umi_aug.errors import AugmentError
+
+    if value is None or str(value).strip().lower() in ("default", "none"):
+        return None
+    try:
+        return int(value)
+    except ValueError:
+        raise AugmentError(f"--jpegxl-effort {value!r}: expected an int in 1..9 or 'default'") from None
 
 
 def dataset_input_from_args(args: argparse.Namespace):

@@ -52,7 +52,7 @@ RECORD_KEYS: dict[str, str] = {"aug_source_episode": "int64", "aug_mode": "int8"
 ATTR = "umi_aug_export"
 RECORD_CHUNK = 1024
 #: Speed-ups of :func:`export` (issue #17), each with its reference path kept (``fast_paths=()``).
-FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead")
+FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead", "obstacle_tiles")
 
 
 @dataclass
@@ -98,7 +98,10 @@ def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
     return config_hash("export", 1, OVERLAY_MASK_RULE, fingerprint, cfg.seed, cfg.mode, cfg.n_per_demo, cfg.cone_half_angle_deg,
                        cfg.cone_radius_m, cfg.max_extra_rotation_deg, cfg.image_size, cfg.max_attempts, cfg.splat,
                        cfg.recon, cfg.obstacle, cfg.overlay, cfg.traj, cfg.render_near_m, cfg.render_far_m,
-                       cfg.include_original)
+                       cfg.include_original,
+                       # the codec's effort changes the stored bytes; None (the library default) keeps the key of
+                       # exports made before the setting existed
+                       *(() if cfg.jpegxl_effort is None else (("jpegxl_effort", cfg.jpegxl_effort),)))
 
 
 def _working_path(out: Path) -> Path:
@@ -138,9 +141,35 @@ def _create_store(path: Path, assets: SessionAssets, key: str, n_jobs: int) -> N
             "aug_job": np.full(E, -1)}
     for k, dt in RECORD_KEYS.items():
         buf.meta.array(k, np.asarray(init[k], dtype=dt), chunks=(RECORD_CHUNK,), compressor=None)
+    _set_image_effort(buf, cfg.jpegxl_effort)
     buf.root.attrs[ATTR] = {"key": key, "n_jobs": n_jobs, "n_original": E, "last_job_done": -1, "failures": [],
                             "modes": MODE_CODES, "format": "umi_aug export v1: meta/aug_* per episode"}
     buf.save(path)
+
+
+#: JPEG-XL codec parameters that only steer the encoder: chunks written with any value decode alike.
+ENCODER_ONLY_JPEGXL_KEYS: frozenset[str] = frozenset({"effort"})
+
+
+def _set_image_effort(buf, effort: int | None) -> None:
+    """Give the image array's JPEG-XL codec config ``effort`` (the encoder setting of every frame written from now
+    on, by zarr's own write and by :mod:`umi_aug.augment.encode` alike); the chunks already stored are left as they
+    are (decoding does not depend on the effort). No-op for ``None``, a non-JPEG-XL codec or the same effort."""
+    from zarr.util import json_dumps
+
+    from umi_aug.data.codecs import JPEGXL_CODEC_ID
+
+    if effort is None or IMAGE_KEY not in buf:
+        return
+    arr = buf[IMAGE_KEY]
+    comp = arr.compressor
+    if comp is None or comp.codec_id != JPEGXL_CODEC_ID or comp.get_config().get("effort") == effort:
+        return
+    key = f"{arr.path}/.zarray"
+    meta = json.loads(arr.store[key])
+    meta["compressor"] = {**comp.get_config(), "effort": int(effort)}
+    arr.store[key] = json_dumps(meta)
+    buf._invalidate()
 
 
 def _open_store(path: Path, key: str):
@@ -198,7 +227,7 @@ class _JobResult:
 def _job_task(args) -> _JobResult:
     """One export job (top-level, picklable: runs in this process or on an executor's worker): plan (or load the
     cached plan), then render the new frames — and the replayed ones too when they cannot be copied raw."""
-    assets, j, job, key, raw_ok, overlay_cache = args
+    assets, j, job, key, raw_ok, overlay_cache, obstacle_tiles = args
     d, m, a = job
     t_scene = time.perf_counter()
     assets = assets.for_demo(d)  # a plain dataset: the demo's scene group (built here on first use)
@@ -222,7 +251,8 @@ def _job_task(args) -> _JobResult:
     if planned is not None:
         copy_tail = planned.obstacle is None and raw_ok
         n = planned.splice_index if copy_tail else planned.n_frames
-        frames = render_episode_frames(assets, planned, range(n), cache_originals=overlay_cache)
+        frames = render_episode_frames(assets, planned, range(n), cache_originals=overlay_cache,
+                                       obstacle_tiles=obstacle_tiles)
     return _JobResult(j, planned, attempts, reasons, frames, copy_tail, t1 - t0, time.perf_counter() - t1, scene_s)
 
 
@@ -249,11 +279,23 @@ IMAGE_KEY = "camera0_rgb"
 
 
 def _raw_copy_ok(dst_arr, src_arr) -> bool:
-    """Chunks of ``src_arr`` can be copied byte for byte into ``dst_arr`` (one frame per chunk, same codec)."""
+    """Chunks of ``src_arr`` can be copied byte for byte into ``dst_arr`` (one frame per chunk, the same codec up
+    to encoder-only settings)."""
     return (dst_arr.chunks == src_arr.chunks and dst_arr.chunks[0] == 1 and dst_arr.dtype == src_arr.dtype
             and dst_arr.shape[1:] == src_arr.shape[1:] and dst_arr.filters == src_arr.filters
             and dst_arr.compressor is not None and src_arr.compressor is not None
-            and dst_arr.compressor.get_config() == src_arr.compressor.get_config())
+            and _decoder_config(dst_arr.compressor) == _decoder_config(src_arr.compressor))
+
+
+def _decoder_config(codec) -> dict:
+    """A codec's config without the encoder-only keys (JPEG-XL ``effort``)."""
+    from umi_aug.data.codecs import JPEGXL_CODEC_ID
+
+    cfg = dict(codec.get_config())
+    if cfg.get("id") == JPEGXL_CODEC_ID:
+        for k in ENCODER_ONLY_JPEGXL_KEYS:
+            cfg.pop(k, None)
+    return cfg
 
 
 def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_arr, src_rows: np.ndarray,
@@ -323,7 +365,9 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
             dataset is byte-identical either way (``tests/augment/test_throughput.py``): ``"overlay_cache"`` —
             the demo's pre-contact frames the gripper overlay draws from are decoded once per demo, not once per
             episode; ``"encode_ahead"`` — new frames are JPEG-XL encoded on ``encode_threads`` threads (default:
-            the usable cores) while the next episode renders.
+            the usable cores) while the next episode renders; ``"obstacle_tiles"`` — on the replayed frames of
+            an obstacle episode the scene's depth (for the obstacle's depth test) is rasterised only in the
+            tiles where the obstacle shows.
         source: another kind of input that knows its own checks and stages (``check(image_size)``,
             ``fingerprint()``, ``dataset``, ``n_augment(n_episodes)``, ``prepare(work, cfg, progress)``), e.g.
             :class:`umi_aug.augment.square_source.SquareSource` for ``session_dir`` = a square demo folder.
@@ -502,8 +546,8 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
         t_loop = time.perf_counter()
         bar = tqdm(total=len(jobs), initial=start, desc="augment", unit="episode", disable=not progress,
                    dynamic_ncols=True)
-        overlay_cache = "overlay_cache" in fast
-        tasks = ((assets, j, jobs[j], key, raw_ok, overlay_cache) for j in range(start, len(jobs)))
+        overlay_cache, obstacle_tiles = "overlay_cache" in fast, "obstacle_tiles" in fast
+        tasks = ((assets, j, jobs[j], key, raw_ok, overlay_cache, obstacle_tiles) for j in range(start, len(jobs)))
         # encode_ahead: a finished episode's new frames are encoded on threads while the next one renders; it is
         # committed (records, data, meta/episode_ends, progress attribute — in the reference's order) when the next
         # result arrives or at the end, so a kill loses at most that one episode (resume redoes it).

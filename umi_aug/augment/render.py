@@ -66,22 +66,35 @@ def render_view(assets: SessionAssets, T_world_cam: np.ndarray, obstacles: Seque
 
 
 def _obstacle_over_original(assets: SessionAssets, T_world_cam: np.ndarray, obstacles_world: Sequence,
-                            original: np.ndarray) -> np.ndarray:
+                            original: np.ndarray, scene_tiles: bool = True) -> np.ndarray:
     """Composite the obstacles (world-frame Gaussians) onto an original frame where they are in front of the
-    scene's 3DGS surface (ray-depth test; where the scene has alpha < 0.5 the obstacle always shows)."""
+    scene's 3DGS surface (ray-depth test; where the scene has alpha < 0.5 the obstacle always shows).
+
+    ``scene_tiles``: the scene is rasterised only in the 16x16 tiles where an obstacle has alpha >=
+    :data:`OBSTACLE_ALPHA_MIN` (the only pixels the test reads; ~4 % of a 224² frame), and not at all when no
+    obstacle shows; False: the whole scene frame (the reference path). Same pixels either way."""
     import torch
 
     from umi_aug.splat import render
+    from umi_aug.splat.renderer import tiles_covering
 
     cfg = assets.cfg
     intr = assets.policy_intrinsics
     T = np.asarray(T_world_cam, np.float64)
     kw = dict(near=cfg.render_near_m, far=cfg.render_far_m)
     with torch.no_grad():
-        scene = render(assets.gaussians, T, intr, **kw)
+        obstacle = [render(g, T, intr, **kw) for g in obstacles_world]
+        if scene_tiles:
+            shows = np.zeros((intr.height, intr.width), dtype=bool)
+            for r in obstacle:
+                shows |= r.alpha.numpy() >= OBSTACLE_ALPHA_MIN
+            if not shows.any():
+                return original.copy()
+            scene = render(assets.gaussians, T, intr, tiles=tiles_covering(shows), **kw)
+        else:
+            scene = render(assets.gaussians, T, intr, **kw)
         out = original.astype(np.float32) / 255.0
-        for g in obstacles_world:
-            r = render(g, T, intr, **kw)
+        for r in obstacle:
             a = r.alpha.numpy().astype(np.float32)
             front = (r.ray_depth.numpy() < scene.ray_depth.numpy()) | (scene.alpha.numpy() < 0.5)
             a = np.where(front & (a >= OBSTACLE_ALPHA_MIN), a, 0.0)[..., None]
@@ -124,13 +137,15 @@ def overlay_originals(assets: SessionAssets, demo_index: int, src: np.ndarray) -
 
 
 def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_indices: Sequence[int], *,
-                          cache_originals: bool = True) -> np.ndarray:
+                          cache_originals: bool = True, obstacle_tiles: bool = True) -> np.ndarray:
     """Policy frames ``[K, S, S, 3]`` uint8 of ``planned`` at ``frame_indices`` (only those are made).
 
     Frames ``k < splice_index``: 3DGS render (+ obstacle) with the gripper overlay. Frames ``k >= splice_index``:
     original frame ``source_contact_index + (k − splice_index)`` of the demo (+ obstacle composited in obstacle
     mode, gripper restored). ``cache_originals``: the overlay's original frames come from
     :func:`overlay_originals` (decoded once per demo); False: decoded for this call (the reference path).
+    ``obstacle_tiles``: on replayed frames of an obstacle episode the scene's depth is rendered only where the
+    obstacle shows (:func:`_obstacle_over_original`); False: the whole frame (the reference path).
 
     Raises:
         AugmentError: an index outside ``[0, n_frames)``.
@@ -162,7 +177,7 @@ def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_
             from umi_aug.splat.compose import transform_gaussians
 
             world = [transform_gaussians(o.gaussians, o.T_world_obj) for o in obstacles]
-            withobs = np.stack([_obstacle_over_original(assets, ep.T_world_cam[k], world, o)
+            withobs = np.stack([_obstacle_over_original(assets, ep.T_world_cam[k], world, o, obstacle_tiles)
                                 for k, o in zip(k_old, originals)])
             originals = composite_overlay(withobs, originals, alpha)
         out[~new] = originals

@@ -451,6 +451,10 @@ def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike,
     if any(d.T_world_cam is None or d.gripper_width is None for d in sess.demos):
         raise AugmentError(f"{session_dir}: every demo needs camera_trajectory.csv and widths in dataset.zarr.zip")
     fp = session_fingerprint(session_dir)
+    if renders:  # a cold numba cache compiles the 3DGS kernels in a child process while SfM runs
+        from umi_aug.splat.warmup import start_background_compile
+
+        start_background_compile()
     stages: dict[str, StageResult] = {}
     try:
         stages["reconstruct"] = recon = _stage_reconstruct(session_dir, work, cfg, fp)

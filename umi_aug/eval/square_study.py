@@ -172,7 +172,9 @@ def _augment_config(cfg: StudyConfig, theta: float):
 
     return AugmentConfig(mode="freespace", n_per_demo=cfg.n_per_demo, seed=cfg.seed, cone_half_angle_deg=theta,
                          cone_radius_m=cfg.radius_m, image_size=cfg.image_size, workers=cfg.augment_workers,
-                         include_original=True)
+                         include_original=True,
+                         # the study's first exports were encoded at libjxl's default effort: keep every cell alike
+                         jpegxl_effort=None)
 
 
 def export_path(cfg: StudyConfig, theta: float | None = None) -> Path:

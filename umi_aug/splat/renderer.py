@@ -32,7 +32,7 @@ from umi_aug.splat.project import camera_from_pose, check_filter, project_gaussi
 
 __all__ = [
     "RenderOutput", "Binning", "RasterizeGaussians", "render", "bin_gaussians", "rasterize_packed", "project_numba",
-    "compose_background_numpy",
+    "compose_background_numpy", "restrict_binning", "tiles_covering",
 ]
 
 Tensor = torch.Tensor
@@ -150,6 +150,37 @@ def bin_gaussians(
     pos = np.empty(m, dtype=np.int64)
     K.sort_by_tile_kernel(isect_tile, isect_row, n_tiles, tile_start, sorted_row, pos)
     return Binning(rows[order], offsets, tile_start, sorted_row, pos, width, height, tiles_x, tiles_y)
+
+
+def tiles_covering(mask: np.ndarray) -> np.ndarray:
+    """``[tiles_y, tiles_x]`` bool: the 16x16 tiles holding at least one True pixel of ``mask [H, W]``."""
+    m = np.asarray(mask, dtype=bool)
+    if m.ndim != 2:
+        raise SplatError(f"tiles_covering: mask must be [H, W], got shape {m.shape}")
+    H, W = m.shape
+    ty, tx = -(-H // TILE_SIZE), -(-W // TILE_SIZE)
+    padded = np.zeros((ty * TILE_SIZE, tx * TILE_SIZE), dtype=bool)
+    padded[:H, :W] = m
+    return padded.reshape(ty, TILE_SIZE, tx, TILE_SIZE).any(axis=(1, 3))
+
+
+def restrict_binning(binning: Binning, tiles: np.ndarray) -> Binning:
+    """``binning`` with only the intersections of the ``tiles [tiles_y, tiles_x]`` (bool) kept: rasterising it gives
+    exactly the full render's values in those tiles (each tile is composited on its own) and nothing elsewhere
+    (transmittance 1). Forward only: the result has no ``pos_of_isect`` for the backward."""
+    import dataclasses
+
+    keep = np.asarray(tiles, dtype=bool)
+    if keep.shape != (binning.tiles_y, binning.tiles_x):
+        raise SplatError(f"tiles: expected a bool mask of shape {(binning.tiles_y, binning.tiles_x)} "
+                         f"(tiles_y, tiles_x), got {keep.shape}")
+    per_tile = np.diff(binning.tile_start)
+    kept = per_tile * keep.reshape(-1)
+    tile_start = np.zeros_like(binning.tile_start)
+    np.cumsum(kept, out=tile_start[1:])
+    sorted_row = binning.sorted_row[np.repeat(keep.reshape(-1), per_tile)]
+    return dataclasses.replace(binning, tile_start=tile_start, sorted_row=sorted_row,
+                               pos_of_isect=np.zeros(0, dtype=np.int64))
 
 
 def _pixel_coords(binning: Binning, dtype) -> tuple[np.ndarray, np.ndarray]:
@@ -339,6 +370,7 @@ def render(
     near: float = DEFAULT_NEAR,
     far: float = DEFAULT_FAR,
     projection: Literal["auto", "numba", "torch"] = "auto",
+    tiles: np.ndarray | None = None,
 ) -> RenderOutput:
     """Render a fisheye image of ``gaussians`` from ``T_world_cam`` (CPU, numba).
 
@@ -361,6 +393,9 @@ def render(
             ray) are culled.
         projection: ``"auto"``, or force ``"numba"`` (the inference projection, no gradients) / ``"torch"`` (the
             torch-autograd reference projection).
+        tiles: ``[tiles_y, tiles_x]`` bool (16x16-pixel tiles, e.g. :func:`tiles_covering`): rasterise only these
+            tiles — their pixels equal the full render's exactly, every other pixel is the background
+            (``alpha`` 0). Inference only (no gradients, numba projection).
 
     Returns:
         :class:`RenderOutput`.
@@ -388,6 +423,9 @@ def render(
         any(t.requires_grad for t in gaussians) or pose_t.requires_grad or bg.requires_grad
     )
     use_torch = projection == "torch" or (projection == "auto" and needs_grad)
+    if tiles is not None and use_torch:
+        raise SplatError("render(tiles=...) renders part of the image for inference only: call it without "
+                         "gradients and with projection 'auto' or 'numba'")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if use_torch:
@@ -407,6 +445,8 @@ def render(
         t1 = time.perf_counter()
         timings["project"] = t1 - t0
         binning = bin_gaussians(packed, rows, depth64[rows], W, H, counts[rows])
+        if tiles is not None:
+            binning = restrict_binning(binning, tiles)
         t2 = time.perf_counter()
         timings["bin"] = t2 - t1
         out = rasterize_packed(packed, binning, uv64)
