@@ -5,6 +5,7 @@ the same run, interleaved over ``--rounds``; the per-sample time split; worker s
 
     python benchmarks/dataset.py                                   # the demo scene (built when missing, minutes)
     python benchmarks/dataset.py --demo /tmp/DATASET/demo --samples 48 --rounds 2 --context spawn
+    python benchmarks/dataset.py --only scaling --workers 0,2,4,8,15 --scaling-samples 960 --rounds 1  # 16 cores
 
 Setting: 224² frames, UMI sampling (obs horizon 2, down-sampling 3, action horizon 16), batch 8, ``aug=freespace``
 with ratio 0.9 on the built-in demo scene (``umi-aug demo``: one demo, 60-step 3DGS, 12.5k Gaussians). Each
@@ -233,18 +234,25 @@ def main() -> None:
     ap.add_argument("--n-aug-per-demo", type=int, default=1000)
     ap.add_argument("--scaling-samples", type=int, default=160, help="steady-state scaling epoch (0: skip)")
     ap.add_argument("--out", default=None, help="JSON results (default: <demo>/dataset_benchmark.json)")
+    ap.add_argument("--only", default="all", choices=["all", "scaling"],
+                    help="scaling: only the steady-state scaling curve (a bigger machine's check)")
+    ap.add_argument("--cuda-init", action="store_true",
+                    help="initialise CUDA in the main process before any worker starts (as a GPU trainer does)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     import torch
 
     torch.set_num_threads(1)
     demo = _demo(Path(args.demo))
+    if args.cuda_init:
+        torch.ones(1, device="cuda").sum().item()  # a CUDA context in the parent, then the workers fork
+        print(f"CUDA initialised in the main process: {torch.cuda.get_device_name()}")
     assets = _assets(demo)
     workers = [int(w) for w in args.workers.split(",")]
     print(f"dataset benchmark: {demo}, 224², obs horizon 2, batch {args.batch}, {args.samples} augmented samples "
           f"per epoch, {args.context} workers, {os.cpu_count()} cores; load {open('/proc/loadavg').read().split()[:3]}")
     rows = []
-    for rnd in range(args.rounds):
+    for rnd in range(args.rounds if args.only == "all" else 0):
         for w in workers:
             for v in ("reference", "new"):
                 r = measure(demo, assets, v, w, args.samples, args.batch, args.context, args.n_aug_per_demo)
@@ -255,10 +263,27 @@ def main() -> None:
                 print(f"  round {rnd} {v:<9} {w} workers: epoch0 {e0['samples_per_s']:5.1f}/s (first batch "
                       f"{e0['first_batch_s']:.1f} s), epoch1 {e1['samples_per_s']:5.1f}/s (first batch "
                       f"{e1['first_batch_s']:.1f} s)  load {r['load']}", flush=True)
-    st = startup(demo, assets, args.context)
+    st = startup(demo, assets, args.context) if args.only == "all" else None
     sc = (scaling(demo, assets, workers, args.scaling_samples, args.batch, args.context, args.rounds)
           if args.scaling_samples else None)
 
+    if rows:
+        _print_comparison(rows, workers, args, st)
+    if sc:
+        _print_scaling(sc, workers, args)
+    m = model_16(rows) if rows and 0 in workers and 2 in workers else {}
+    for v, d in m.items():
+        print(f"16-core model {v:<9}: {d['cpu_s_per_sample'] * 1000:.0f} ms CPU per sample → {d['ideal_16']:.0f} "
+              f"samples/s on 15 worker cores at full efficiency; × the efficiency measured here "
+              f"({d['efficiency_2w']:.2f}) → {d['model_16']:.0f}")
+    out = Path(args.out) if args.out else demo / "dataset_benchmark.json"
+    out.write_text(json.dumps({"rows": rows, "startup": st, "scaling": sc, "model_16": m, "args": vars(args),
+                               "cores": os.cpu_count()}, indent=1))
+    print(f"\n(results: {out})")
+
+
+def _print_comparison(rows: list[dict], workers: list[int], args, st: dict) -> None:
+    """Reference vs new paths per worker count and epoch; the 0-worker time split; worker start-up."""
     print(f"\nsamples/s (mean over {args.rounds} rounds; ratio = new / reference of the same round, averaged)")
     head = f"{'workers':>8} {'epoch':>6} {'reference':>10} {'new':>8} {'ratio':>7}"
     print(head + "\n" + "-" * len(head))
@@ -282,35 +307,31 @@ def main() -> None:
     print(f"\nworker start-up ({args.context}): first worker to its first batch {st['first_worker_s']:.2f} s, "
           f"a second one {st['second_worker_s']:.2f} s; the sample itself {st['sample_in_process_s']:.2f} s in "
           f"process")
-    if sc:
-        r0 = sum(sc["rates"][workers[0]]) / len(sc["rates"][workers[0]])
-        print(f"\nsteady-state scaling, new paths, {args.scaling_samples} samples, persistent {args.context} workers, "
-              f"plans on disk (per round; efficiency = rate / (max(workers, 1) × rate at {workers[0]} workers)):")
-        for w in workers:
-            rs = sc["rates"][w]
-            m_ = sum(rs) / len(rs)
-            cw = sum(sc["item_cpu_s"][w]) / len(rs)
-            ww = sum(sc["item_wall_s"][w]) / len(rs)
-            print(f"  {w} workers: " + ", ".join(f"{r:.1f}" for r in rs) + f" samples/s; mean {m_:.1f}, "
-                  f"efficiency {m_ / (max(w, 1) * r0):.2f}; per sample where it runs: {cw * 1000:.0f} ms CPU, "
-                  f"{ww * 1000:.0f} ms wall (CPU/wall {cw / ww:.2f} = the core share it got)")
-        if sc["cpu_s_per_sample"]:
-            c = sum(sc["cpu_s_per_sample"]) / len(sc["cpu_s_per_sample"])
-            eff = (sum(sc["rates"][max(workers)]) / len(sc["rates"][max(workers)])) / (max(max(workers), 1) * r0)
-            wmax = max(workers)
-            cw = sum(sc["item_cpu_s"][wmax]) / len(sc["item_cpu_s"][wmax])
-            print(f"  CPU per sample: {c * 1000:.0f} ms in process (0 workers, incl. collation), {cw * 1000:.0f} ms "
-                  f"inside a worker ({wmax} workers) → 16 cores (15 worker cores, CPU-bound, the trainer on the 16th): "
-                  f"{15 / cw:.0f} samples/s; on 2 free cores: {2 / cw:.0f}. Wall-clock efficiency measured on this "
-                  f"shared machine: {eff:.2f} (→ {15 / c * eff:.0f} on 16 cores if it held there)")
-    m = model_16(rows) if 0 in workers and 2 in workers else {}
-    for v, d in m.items():
-        print(f"16-core model {v:<9}: {d['cpu_s_per_sample'] * 1000:.0f} ms CPU per sample → {d['ideal_16']:.0f} "
-              f"samples/s on 15 worker cores at full efficiency; × the efficiency measured here "
-              f"({d['efficiency_2w']:.2f}) → {d['model_16']:.0f}")
-    out = Path(args.out) if args.out else demo / "dataset_benchmark.json"
-    out.write_text(json.dumps({"rows": rows, "startup": st, "scaling": sc, "model_16": m, "args": vars(args)}, indent=1))
-    print(f"\n(results: {out})")
+
+
+def _print_scaling(sc: dict, workers: list[int], args) -> None:
+    """The steady-state scaling curve; the CPU per sample and what it gives on 16 cores (with 0 workers in the
+    curve)."""
+    r0 = sum(sc["rates"][workers[0]]) / len(sc["rates"][workers[0]])
+    print(f"\nsteady-state scaling, new paths, {args.scaling_samples} samples, persistent {args.context} workers, "
+          f"plans on disk (per round; efficiency = rate / (max(workers, 1) × rate at {workers[0]} workers)):")
+    for w in workers:
+        rs = sc["rates"][w]
+        m_ = sum(rs) / len(rs)
+        cw = sum(sc["item_cpu_s"][w]) / len(rs)
+        ww = sum(sc["item_wall_s"][w]) / len(rs)
+        print(f"  {w} workers: " + ", ".join(f"{r:.1f}" for r in rs) + f" samples/s; mean {m_:.1f}, "
+              f"efficiency {m_ / (max(w, 1) * r0):.2f}; per sample where it runs: {cw * 1000:.0f} ms CPU, "
+              f"{ww * 1000:.0f} ms wall (CPU/wall {cw / ww:.2f} = the core share it got)")
+    if sc["cpu_s_per_sample"]:
+        c = sum(sc["cpu_s_per_sample"]) / len(sc["cpu_s_per_sample"])
+        eff = (sum(sc["rates"][max(workers)]) / len(sc["rates"][max(workers)])) / (max(max(workers), 1) * r0)
+        wmax = max(workers)
+        cw = sum(sc["item_cpu_s"][wmax]) / len(sc["item_cpu_s"][wmax])
+        print(f"  CPU per sample: {c * 1000:.0f} ms in process (0 workers, incl. collation), {cw * 1000:.0f} ms "
+              f"inside a worker ({wmax} workers) → 16 cores (15 worker cores, CPU-bound, the trainer on the 16th): "
+              f"{15 / cw:.0f} samples/s; on 2 free cores: {2 / cw:.0f}. Wall-clock efficiency measured on this "
+              f"shared machine: {eff:.2f} (→ {15 / c * eff:.0f} on 16 cores if it held there)")
 
 
 if __name__ == "__main__":

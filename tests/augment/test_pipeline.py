@@ -16,14 +16,15 @@ from tests.augment.conftest import SIZE, small_config
 def test_stages_are_cached_and_skipped(aug_assets, aug_session, aug_work):
     from umi_aug.augment import prepare_session
 
-    assert set(aug_assets.stages) == {"reconstruct", "contact", "splat", "gripper_mask", "obstacles"}
+    assert set(aug_assets.stages) == {"reconstruct", "contact", "splat", "gripper_mask"}
+    assert "obstacle_work" in aug_assets.paths  # obstacle Gaussians: fitted per asset on first use
     prepare_session(aug_session, aug_work, small_config(), progress=False)  # other tests may have used other configs
     again = prepare_session(aug_session, aug_work, small_config(), progress=False)
     assert all(r.skipped for r in again.stages.values())
     assert {k: r.key for k, r in again.stages.items()} == {k: r.key for k, r in aug_assets.stages.items()}
     # a free-space run does not need (and does not run) the obstacle stage
     free = prepare_session(aug_session, aug_work, small_config(mode="freespace"), progress=False)
-    assert "obstacles" not in free.stages and all(r.skipped for r in free.stages.values())
+    assert "obstacle_work" not in free.paths and all(r.skipped for r in free.stages.values())
     # changing only the overlay settings reruns only the mask stage
     from umi_aug.augment import OverlayConfig
 
@@ -31,6 +32,36 @@ def test_stages_are_cached_and_skipped(aug_assets, aug_session, aug_work):
                             overlay=OverlayConfig(mask="estimated")), progress=False)
     assert [k for k, r in other.stages.items() if not r.skipped] == ["gripper_mask"]
     assert other.mask_info["source"] == "estimated" and other.gripper_mask.shape == (SIZE, SIZE)
+
+
+def test_obstacle_gaussians_fitted_per_asset_on_first_use(aug_session, tmp_path):
+    """Only the assets an episode renders are fitted; once, cached across handles and processes' copies; a bad
+    asset name fails up front; an asset outside the run's list is refused."""
+    import dataclasses
+    import shutil
+
+    from umi_aug.augment import prepare_session
+    from umi_aug.augment.session_assets import obstacle_stage
+    from umi_aug.errors import AugmentError
+
+    work = tmp_path / "work"
+    cfg = small_config(mode="obstacle", splat=small_config().splat)
+    assets = prepare_session(aug_session, work, cfg, progress=False)
+    assert not (work / "obstacles").exists()  # nothing fitted yet
+    g = assets.obstacle_gaussians("box")
+    assert g.n > 0 and g.means.isfinite().all()
+    fitted = sorted(p.name for p in (work / "obstacles").iterdir() if p.is_dir())
+    assert len(fitted) == 1 and fitted[0].startswith("box-")  # bottle untouched
+    copy = pickle.loads(pickle.dumps(assets))
+    copy._lazy = {}  # a fresh process: reads the stage's cache
+    assert copy.obstacle_gaussians("box").n == g.n
+    assert obstacle_stage(work, cfg, "box").skipped
+    with pytest.raises(AugmentError, match="no obstacle Gaussians for asset 'sphere'"):
+        assets.obstacle_gaussians("sphere")
+    with pytest.raises(AugmentError, match="obstacle asset 'no-such-asset'"):
+        prepare_session(aug_session, work, small_config(mode="obstacle", obstacle=dataclasses.replace(
+            cfg.obstacle, assets=("box", "no-such-asset"))), progress=False)
+    shutil.rmtree(work / "obstacles")
 
 
 def test_assets_pickle_light(aug_assets):
@@ -41,6 +72,30 @@ def test_assets_pickle_light(aug_assets):
     assert back._lazy == {} and back.paths == aug_assets.paths
     d = aug_assets.demos[0]
     assert d.contact_index is not None and 0 < d.contact_index < len(d.T_world_cam)
+
+
+def test_original_buffer_reopened_in_a_forked_child(aug_assets, monkeypatch):
+    """A forked DataLoader worker must not read through the parent's zip handle (a shared read offset): the
+    original buffer is opened once per process, and a real forked child reads the same frames."""
+    import multiprocessing as mp
+    import os
+
+    first = aug_assets.original
+    want = aug_assets.original_frames(0, slice(0, 4))
+    assert aug_assets.original is first  # same process: cached
+    ctx = mp.get_context("fork")
+    with ctx.Pool(2) as pool:  # children read while the parent reads too
+        got = pool.starmap(_frames_checksum, [(aug_assets, k) for k in range(4)])
+        mine = [int(aug_assets.original_frames(0, slice(k, k + 1)).sum()) for k in range(4)]
+    assert got == mine == [int(want[k].sum()) for k in range(4)]
+    pid = os.getpid()
+    monkeypatch.setattr(os, "getpid", lambda: pid + 1)  # as a forked child sees it
+    assert aug_assets.original is not first
+    np.testing.assert_array_equal(aug_assets.original_frames(0, slice(0, 4)), want)
+
+
+def _frames_checksum(assets, k: int) -> int:
+    return int(assets.original_frames(0, slice(k, k + 1)).sum())
 
 
 def _episode_bytes(planned, frames) -> bytes:

@@ -107,6 +107,10 @@ def test_fast_dataset_gives_the_reference_samples(noisy_original, aug_assets, tm
     for i, w in zip(idx, want):
         _same(again[i], w)
     assert again.stats["plans_solved"] == 0 and again.stats["plan_disk_hits"] == again.stats["plans"] > 0
+    # the random samples' windows may all lie after the splice (replayed frames: nothing rendered); step 0 of a
+    # planned episode is always a new, rendered frame
+    demo, aug_id, mode, _ = again.slot(0)
+    assert again.augmented_sample(demo, aug_id, mode, 0) is not None
     assert {"plan", "decode", "render", "lowdim", "to_tensor"} <= again.timings.keys()
     from umi_aug.errors import PolicyError
 
@@ -165,7 +169,7 @@ def test_persistent_workers_follow_epochs_and_match_the_reference(noisy_original
     from umi_aug.policy.workspace import loader_context, make_loader
 
     context = loader_context(aug_assets and _dataset(noisy_original, aug_assets))
-    assert context == "spawn" and loader_context(noisy_original) is None
+    assert context == "spawn" and loader_context(noisy_original) == "spawn"
 
     n = len(noisy_original)
     ref_ds = _dataset(noisy_original, aug_assets, fast_paths=())

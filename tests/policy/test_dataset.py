@@ -149,3 +149,45 @@ def test_dataloader_workers_read_the_zip(dataset_path, tmp_path):
                                      multiprocessing_context="fork")
     got = [b["obs"]["camera0_rgb"] for _, b in zip(range(2), dl)]
     assert torch.equal(torch.cat(got), torch.stack(ref))
+
+
+_THREADED_PARENT = """
+import pickle, sys, torch
+from umi_aug.policy.dataset import UmiPolicyDataset
+from umi_aug.policy.workspace import loader_context, make_loader
+
+if __name__ == "__main__":
+    torch.set_num_threads(2)
+    x = torch.randn(256, 256)
+    for _ in range(3):  # the parent's OpenMP pool is up, as in a training process
+        (x @ x).sum(); torch.randn(64, 3, 64, 64).float().mul_(2.0)
+    with open(sys.argv[2], "rb") as fh:
+        task = pickle.load(fh)
+    ds = UmiPolicyDataset(sys.argv[1], task, "train")
+    loader = make_loader(ds, 2, True, seed=0, num_workers=2, persistent=True, context=loader_context(ds))
+    n = sum(len(b["action"]) for b in loader)
+    print("samples", n, "of", len(ds), flush=True)
+    del loader  # workers shut down before the interpreter does
+"""
+
+
+def test_workers_of_a_multithreaded_parent_do_not_hang(tmp_path):
+    """The training loader's workers (``loader_context``) must run when the parent has used torch's OpenMP pool:
+    FORKED ones block in their first parallel kernel (reproduced: ``train/train.py device.num_workers=2`` made no
+    step in 300 s). A child process with a timeout, so a hang fails the test instead of stalling the suite. 84²
+    frames: a sample's uint8 → float conversion is then large enough for torch to run it in parallel."""
+    import pickle
+    import subprocess
+    import sys
+
+    dataset_path = make_dataset(tmp_path / "d84.zarr.zip", np.random.default_rng(5), n_episodes=3, length=40,
+                                size=84)
+
+    script, task = tmp_path / "threaded_parent.py", tmp_path / "task.pkl"
+    script.write_text(_THREADED_PARENT)
+    task.write_bytes(pickle.dumps(tiny_config(dataset_path, tmp_path, image_size=84).task))
+    r = subprocess.run([sys.executable, str(script), str(dataset_path), str(task)], capture_output=True, text=True,
+                       timeout=180, env={**__import__("os").environ, "OMP_NUM_THREADS": "2"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    n, of = r.stdout.split()[1::2]
+    assert n == of and int(n) > 0, r.stdout

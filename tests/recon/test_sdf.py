@@ -99,6 +99,11 @@ def test_inflation_outside_grid_and_io(field, tmp_path):
     assert back.voxel == sdf.voxel and not list(tmp_path.glob("*.tmp-*"))
     with pytest.raises(ReconError):
         sdf.distance_and_gradient(np.array([[np.nan, 0.0, 0.0]]))
+    # an empty or cut-off file (a copy that did not finish): one ReconError naming the file, not numpy's EOFError
+    for name, data in (("empty.npz", b""), ("cut.npz", p.read_bytes()[:200])):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(ReconError, match=name):
+            VoxelSDF.load(tmp_path / name)
 
 
 def test_carving_makes_seen_space_free():

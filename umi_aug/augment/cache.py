@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -25,7 +27,7 @@ from umi_aug.augment.config import config_hash
 from umi_aug.errors import AugmentError
 from umi_aug.io_utils import atomic_write_text
 
-__all__ = ["StageResult", "run_stage", "read_manifest", "MANIFEST"]
+__all__ = ["StageResult", "run_stage", "read_manifest", "build_lock", "MANIFEST"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +57,23 @@ class StageResult:
     def path(self, name: str) -> Path:
         """Absolute path of output file ``name``."""
         return self.dir / str(self.outputs[name])
+
+
+@contextmanager
+def build_lock(folder: Path):
+    """Exclusive, BLOCKING lock of a folder of stages: executor workers that need the same stages while they are
+    being built wait for them, then find them cached (the kernel drops the lock if the holder dies)."""
+    import fcntl
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder / ".build.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
 
 
 def read_manifest(stage_dir: Path) -> dict | None:

@@ -31,22 +31,22 @@ import json
 import logging
 import os
 import re
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from umi_aug.augment.cache import StageResult, run_stage
+from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig
 from umi_aug.augment.session_assets import (
     _PROCESS_CACHE,
+    OBSTACLE_WORK_KEY,
     DemoInfo,
     SessionAssets,
     _stage_contact,
     _stage_gripper_mask,
-    _stage_obstacles,
+    check_obstacle_assets,
 )
 from umi_aug.errors import AugmentError, UmiAugError
 
@@ -587,22 +587,6 @@ def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, _Demo], sc
     return run_stage("splat", work, conf, {"dataset": fp, "scene": scene.key, "contact": contact.key}, fn)
 
 
-@contextmanager
-def _build_lock(folder: Path):
-    """Exclusive, BLOCKING lock of one group's stage folder: executor workers that need the same group while it
-    is being built wait for it, then find its stages cached (the kernel drops the lock if the holder dies)."""
-    import fcntl
-
-    folder.mkdir(parents=True, exist_ok=True)
-    fd = os.open(folder / ".build.lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        os.close(fd)
-
-
 def _build_group(dataset: Path, work: Path, fp: str, g: str, gd: dict[int, _Demo], fps: dict[int, float],
                  cfg: AugmentConfig, inp: DatasetInput, renders: bool, progress: bool, extra_paths: dict[str, str]
                  ) -> dict[str, Any]:
@@ -610,7 +594,7 @@ def _build_group(dataset: Path, work: Path, fp: str, g: str, gd: dict[int, _Demo
     contact: {episode: splice frame or None}, stages}``."""
     gw = work / "scenes" / g
     eps = sorted(gd)
-    with _build_lock(gw):
+    with build_lock(gw):
         try:
             scene = _stage_scene(gw, dataset, fp, eps, gd, fps, cfg, inp)
             sdf_st = _stage_sdf(gw, dataset, scene, eps, gd, fps, cfg)
@@ -670,12 +654,9 @@ def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg
     work.mkdir(parents=True, exist_ok=True)
     stages: dict[str, StageResult] = {}
     extra: dict[str, str] = {}
-    if renders and "obstacle" in cfg.modes:
-        try:
-            obs = stages["obstacles"] = _stage_obstacles(work, cfg)
-        except UmiAugError as exc:
-            raise AugmentError(f"stage obstacles failed: {exc}") from exc
-        extra = {f"obstacle/{name}": str(obs.path(name)) for name in cfg.obstacle.assets}
+    if renders and "obstacle" in cfg.modes:  # each asset's Gaussians are fitted when an episode first uses it
+        check_obstacle_assets(cfg)
+        extra = {OBSTACLE_WORK_KEY: str(work)}
     demos = []
     ends = chk.episode_ends
     for e in range(chk.n_episodes):

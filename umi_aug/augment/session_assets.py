@@ -11,8 +11,10 @@
 3. ``splat`` — the scene's fisheye 3DGS (:func:`umi_aug.splat.train_session.train_splat_from_session`, initialised from
    the SfM cloud; ``iterations = 0`` → the initial Gaussians only, no optimisation — for smoke runs);
 4. ``gripper_mask`` — the overlay mask at policy resolution (:mod:`umi_aug.augment.overlay`);
-5. ``obstacles`` (obstacle modes only) — one Gaussian model per obstacle asset, object frame
-   (:func:`umi_aug.splat.obstacle_gaussians.obstacle_gaussians`).
+5. ``obstacles/<asset>`` (obstacle modes only) — one Gaussian model per obstacle asset, object frame
+   (:func:`umi_aug.splat.obstacle_gaussians.obstacle_gaussians`), fitted when an episode first renders that asset
+   (:meth:`SessionAssets.obstacle_gaussians`; a blocking lock makes executor workers wait for one fit), so a run
+   whose episodes use two of three assets fits two.
 
 :class:`SessionAssets` keeps paths and small arrays; the heavy things (scene Gaussians, SDF, original dataset,
 obstacle models, trajectory problems) load lazily, once per process, and are dropped when pickled.
@@ -25,19 +27,23 @@ import hashlib
 import json
 import logging
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from umi_aug.augment.cache import StageResult, run_stage
+from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import AugmentError, UmiAugError
 
 __all__ = ["DemoInfo", "SessionAssets", "prepare_session", "session_fingerprint", "scaled_obstacle_asset",
-           "load_obstacle_asset"]
+           "load_obstacle_asset", "OBSTACLE_WORK_KEY"]
+
+#: ``SessionAssets.paths`` key of the folder whose ``obstacles/`` holds the per-asset obstacle stages.
+OBSTACLE_WORK_KEY = "obstacle_work"
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +84,8 @@ class SessionAssets:
         intrinsics: raw frame intrinsics; demos: list[DemoInfo];
         render_views: np.ndarray,  # [V, 4, 4] the poses the 3DGS was trained on (scan + demos' pre-contact)
         gripper_mask: np.ndarray,  # [S, S] bool overlay mask; mask_info: how it was chosen
-        paths: {"sdf", "cloud", "splat", "dataset", "obstacle/<asset>"...}: files; stages: StageResult per stage.
+        paths: {"sdf", "cloud", "splat", "dataset"}: files, and in obstacle modes ``"obstacle_work"``: the folder of
+            the per-asset obstacle stages; stages: StageResult per stage run by :func:`prepare_session`.
     """
 
     session_dir: Path
@@ -137,10 +144,15 @@ class SessionAssets:
 
     @property
     def original(self):
-        """The session's original replay buffer (read-only, lazy chunk access)."""
+        """The session's original replay buffer (read-only, lazy chunk access). Opened once per process: a
+        forked child re-opens it, as a zip file handle shared across a fork shares its read offset (concurrent reads
+        then fail with ``BadZipFile``)."""
         from umi_aug.data import ReplayBuffer
 
-        return self._get("original", lambda: ReplayBuffer.open(self.paths["dataset"]))
+        if self._lazy.get("original_pid") != os.getpid():
+            self._lazy["original"] = ReplayBuffer.open(self.paths["dataset"])
+            self._lazy["original_pid"] = os.getpid()
+        return self._lazy["original"]
 
     def original_frames(self, demo_index: int, frames: np.ndarray | slice) -> np.ndarray:
         """Original policy frames ``[K, S, S, 3]`` uint8 of demo ``demo_index``."""
@@ -155,14 +167,24 @@ class SessionAssets:
         return arr[lo:hi][idx - lo]
 
     def obstacle_gaussians(self, asset: str):
-        """Gaussians of obstacle ``asset`` in its object frame (from the ``obstacles`` stage)."""
+        """Gaussians of obstacle ``asset`` in its object frame: its ``obstacles/<asset>`` stage, fitted on first
+        use (in any process) and read from the cache after."""
         from umi_aug.splat import read_ply
 
-        key = f"obstacle/{asset}"
-        if key not in self.paths:
-            raise AugmentError(f"{self.work_dir}: no obstacle Gaussians for asset {asset!r}; the 'obstacles' "
-                               f"stage ran for {sorted(k[9:] for k in self.paths if k.startswith('obstacle/'))}")
-        return self._get(key, lambda: read_ply(self.paths[key]))
+        if OBSTACLE_WORK_KEY not in self.paths or asset not in self.cfg.obstacle.assets:
+            raise AugmentError(f"{self.work_dir}: no obstacle Gaussians for asset {asset!r} (obstacle assets of "
+                               f"this run: {list(self.cfg.obstacle.assets) if OBSTACLE_WORK_KEY in self.paths else []})")
+        work = Path(self.paths[OBSTACLE_WORK_KEY])
+
+        def load():
+            try:
+                with build_lock(work / "obstacles"):
+                    st = obstacle_stage(work, self.cfg, asset)
+            except UmiAugError as exc:
+                raise AugmentError(f"stage obstacles/{asset} failed: {exc}") from exc
+            return read_ply(st.path("ply"))
+
+        return self._get(f"obstacle/{asset}", load)
 
     def obstacle_asset(self, asset: str):
         """The :class:`umi_aug.recon.ObstacleAsset` named ``asset`` (procedural name or mesh path)."""
@@ -404,23 +426,38 @@ def _stage_gripper_mask(work: Path, cfg: AugmentConfig, fp: str, dataset: Path, 
                      {"session": fp, "contact": contact.key}, fn)
 
 
-def _stage_obstacles(work: Path, cfg: AugmentConfig) -> StageResult:
+def check_obstacle_assets(cfg: AugmentConfig) -> None:
+    """Load every obstacle asset of an obstacle-mode run once, up front (their Gaussians are fitted lazily, so
+    a bad name or mesh file must fail here, before any work, not in an episode). Raises :class:`AugmentError`."""
+    if "obstacle" not in cfg.modes:
+        return
+    for name in cfg.obstacle.assets:
+        try:
+            load_obstacle_asset(name)
+        except AugmentError:
+            raise
+        except (UmiAugError, OSError, ValueError) as exc:
+            raise AugmentError(f"obstacle asset {name!r}: {exc}") from exc
+
+
+def obstacle_stage(work: Path, cfg: AugmentConfig, name: str) -> StageResult:
+    """The ``obstacles/<asset>`` stage: the Gaussians of obstacle asset ``name`` (a procedural name or a mesh
+    path) in its object frame, ``scene.ply``. Keyed by the asset and the Gaussian settings only (not the session,
+    not the other assets). Callers that may run concurrently hold :func:`build_lock` on ``work/obstacles``."""
     def fn(out: Path):
         from umi_aug.splat import write_ply
         from umi_aug.splat.obstacle_gaussians import obstacle_gaussians
 
-        outputs, files, info = {}, [], {}
-        for k, name in enumerate(cfg.obstacle.assets):
-            asset = load_obstacle_asset(name)
-            g = obstacle_gaussians(asset, cache_dir=out / "cache", fit=cfg.obstacle.fit_gaussians,
-                                   n_gaussians=cfg.obstacle.n_gaussians, seed=cfg.seed)
-            fname = f"obstacle_{k:02d}.ply"
-            write_ply(out / fname, g)
-            outputs[name], info[name] = fname, {"gaussians": int(g.n)}
-            files.append(fname)
-        return outputs, files, info
+        g = obstacle_gaussians(load_obstacle_asset(name), cache_dir=out / "cache", fit=cfg.obstacle.fit_gaussians,
+                               n_gaussians=cfg.obstacle.n_gaussians, seed=cfg.seed)
+        write_ply(out / "scene.ply", g)
+        return {"ply": "scene.ply"}, ["scene.ply"], {"asset": name, "gaussians": int(g.n)}
 
-    return run_stage("obstacles", work, {"obstacle": cfg.obstacle, "seed": cfg.seed}, {}, fn)
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).name)[:40]
+    folder = f"obstacles/{slug}-{hashlib.sha256(name.encode()).hexdigest()[:8]}"
+    conf = {"asset": name, "fit": cfg.obstacle.fit_gaussians, "n_gaussians": cfg.obstacle.n_gaussians,
+            "seed": cfg.seed}
+    return run_stage(folder, work, conf, {}, fn)
 
 
 def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike, cfg: AugmentConfig,
@@ -472,10 +509,9 @@ def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike,
         try:
             stages["splat"] = splat = _stage_splat(session_dir, work, cfg, fp, recon, contact, progress)
             stages["gripper_mask"] = gm = _stage_gripper_mask(work, cfg, fp, dataset, demos, contact)
-            if "obstacle" in cfg.modes:
-                stages["obstacles"] = obs = _stage_obstacles(work, cfg)
-                for name in cfg.obstacle.assets:
-                    paths[f"obstacle/{name}"] = str(obs.path(name))
+            if "obstacle" in cfg.modes:  # each asset's Gaussians are fitted when an episode first uses it
+                check_obstacle_assets(cfg)
+                paths[OBSTACLE_WORK_KEY] = str(work)
         except UmiAugError as exc:
             raise AugmentError(f"stage failed: {exc}") from exc
         paths["splat"] = str(splat.path("ply"))

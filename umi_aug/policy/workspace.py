@@ -133,22 +133,27 @@ def worker_init(worker_id: int) -> None:
         pass
 
 
-def loader_context(ds: torch.utils.data.Dataset) -> str | None:
-    """``"spawn"`` for a dataset that renders (numba's parallel kernels): a worker FORKED from a process whose numba
-    thread pool is running deadlocks in its first parallel kernel (measured: the fork variant of
-    tests/policy/test_augmented_dataset_fast.py hung); None (the platform default) otherwise."""
-    from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
-
-    return "spawn" if isinstance(ds, AugmentedUmiDataset) else None
+def loader_context(ds: torch.utils.data.Dataset) -> str:
+    """``"spawn"``, for every dataset: a DataLoader worker FORKED from a process that has run multi-threaded work
+    blocks in its first parallel kernel, because the parent's thread pools do not survive the fork:
+    - torch's OpenMP pool (libgomp): the plain :class:`UmiPolicyDataset` under ``train/train.py`` with 2 forked
+      workers made no step in 300 s on 2 cores (each worker waiting inside ``Tensor.float()``); with a 1-thread
+      parent, or spawned workers, it trains (2026-11-26; ``tests/policy/test_dataset.py``);
+    - numba's pool, for a dataset that renders (the fork variant of ``tests/policy/test_augmented_dataset_fast.py``
+      hung).
+    Spawned workers start once per run (persistent workers): 2–3 s."""
+    return "spawn"
 
 
 def make_loader(ds: torch.utils.data.Dataset, batch_size: int, shuffle: bool, seed: int, epoch: int = 0,
                 num_workers: int = 0, pin_memory: bool = False, persistent: bool = True,
-                context: str | None = None, start_batch: int = 0) -> torch.utils.data.DataLoader:
+                context: str | None = "spawn", start_batch: int = 0) -> torch.utils.data.DataLoader:
     """The training/validation DataLoader, its order from :class:`EpochSampler` (the order of a fresh
     ``DataLoader(shuffle=..., generator=<seeded for epoch>)`` iterated directly). ``persistent`` with workers: built
     once, persistent workers (call ``loader.sampler.set_epoch(e)`` and the dataset's ``set_epoch`` before each
-    epoch); otherwise one loader per epoch. Both give the same index order per epoch. Workers get :func:`worker_init`; ``context``: ``"fork"`` / ``"spawn"`` (None: the default).
+    epoch); otherwise one loader per epoch. Both give the same index order per epoch. Workers get :func:`worker_init`;
+    ``context``: ``"spawn"`` (default, see :func:`loader_context`), ``"fork"``, ``"forkserver"``, or None (the
+    platform's default: fork on Linux — only for a parent that has run no multi-threaded torch/numba work).
     ``start_batch`` > 0: the epoch's order from that batch on (:class:`EpochSampler`; a mid-epoch resume)."""
     common = dict(batch_size=batch_size, num_workers=num_workers, pin_memory=pin_memory, drop_last=False,
                   worker_init_fn=worker_init if num_workers > 0 else None,

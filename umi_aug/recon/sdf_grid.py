@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -144,8 +145,8 @@ class VoxelSDF:
         try:
             with np.load(path) as z:
                 return cls(z["values"], z["origin"], float(z["voxel"]), float(z["inflation"]))
-        except (OSError, KeyError, ValueError) as exc:
-            raise ReconError(f"{path}: not a VoxelSDF file ({exc})") from exc
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            raise ReconError(f"{path}: not a VoxelSDF file ({type(exc).__name__}: {exc})") from exc
 
 
 def reachable_region(T_world_cam: np.ndarray, contact_index: int, half_angle: float, radius: float | None = None,
