@@ -230,7 +230,8 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--workers", default="0,1,2")
-    ap.add_argument("--context", default="spawn", choices=["spawn", "fork"])
+    ap.add_argument("--context", default="spawn", choices=["spawn", "forkserver"],
+                    help="worker start method (fork is unsafe: loader_context in umi_aug.policy.workspace)")
     ap.add_argument("--n-aug-per-demo", type=int, default=1000)
     ap.add_argument("--scaling-samples", type=int, default=160, help="steady-state scaling epoch (0: skip)")
     ap.add_argument("--out", default=None, help="JSON results (default: <demo>/dataset_benchmark.json)")

@@ -60,14 +60,15 @@ class StageResult:
 
 
 @contextmanager
-def build_lock(folder: Path):
-    """Exclusive, BLOCKING lock of a folder of stages: executor workers that need the same stages while they are
-    being built wait for them, then find them cached (the kernel drops the lock if the holder dies)."""
+def build_lock(folder: Path, name: str = ".build.lock"):
+    """Exclusive, BLOCKING lock (the file ``folder/name``) of a folder of stages, or of one stage in it: executor
+    workers that need the same stages while they are being built wait for them, then find them cached (the kernel
+    drops the lock if the holder dies)."""
     import fcntl
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    fd = os.open(folder / ".build.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(folder / name, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
         yield

@@ -177,8 +177,8 @@ class SessionAssets:
         work = Path(self.paths[OBSTACLE_WORK_KEY])
 
         def load():
-            try:
-                with build_lock(work / "obstacles"):
+            try:  # one lock per asset: two workers fit two different assets at once
+                with build_lock(work / "obstacles", f".{obstacle_stage_folder(asset)[10:]}.lock"):
                     st = obstacle_stage(work, self.cfg, asset)
             except UmiAugError as exc:
                 raise AugmentError(f"stage obstacles/{asset} failed: {exc}") from exc
@@ -440,10 +440,17 @@ def check_obstacle_assets(cfg: AugmentConfig) -> None:
             raise AugmentError(f"obstacle asset {name!r}: {exc}") from exc
 
 
+def obstacle_stage_folder(name: str) -> str:
+    """``obstacles/<slug>-<hash8>``: the stage folder of obstacle asset ``name`` (relative to the work folder)."""
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).name)[:40]
+    return f"obstacles/{slug}-{hashlib.sha256(name.encode()).hexdigest()[:8]}"
+
+
 def obstacle_stage(work: Path, cfg: AugmentConfig, name: str) -> StageResult:
     """The ``obstacles/<asset>`` stage: the Gaussians of obstacle asset ``name`` (a procedural name or a mesh
     path) in its object frame, ``scene.ply``. Keyed by the asset and the Gaussian settings only (not the session,
-    not the other assets). Callers that may run concurrently hold :func:`build_lock` on ``work/obstacles``."""
+    not the other assets). Callers that may run concurrently hold the asset's :func:`build_lock` (as
+    :meth:`SessionAssets.obstacle_gaussians` does)."""
     def fn(out: Path):
         from umi_aug.splat import write_ply
         from umi_aug.splat.obstacle_gaussians import obstacle_gaussians
@@ -453,8 +460,7 @@ def obstacle_stage(work: Path, cfg: AugmentConfig, name: str) -> StageResult:
         write_ply(out / "scene.ply", g)
         return {"ply": "scene.ply"}, ["scene.ply"], {"asset": name, "gaussians": int(g.n)}
 
-    slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).name)[:40]
-    folder = f"obstacles/{slug}-{hashlib.sha256(name.encode()).hexdigest()[:8]}"
+    folder = obstacle_stage_folder(name)
     conf = {"asset": name, "fit": cfg.obstacle.fit_gaussians, "n_gaussians": cfg.obstacle.n_gaussians,
             "seed": cfg.seed}
     return run_stage(folder, work, conf, {}, fn)
