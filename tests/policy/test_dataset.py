@@ -186,8 +186,19 @@ def test_workers_of_a_multithreaded_parent_do_not_hang(tmp_path):
     script, task = tmp_path / "threaded_parent.py", tmp_path / "task.pkl"
     script.write_text(_THREADED_PARENT)
     task.write_bytes(pickle.dumps(tiny_config(dataset_path, tmp_path, image_size=84).task))
-    r = subprocess.run([sys.executable, str(script), str(dataset_path), str(task)], capture_output=True, text=True,
-                       timeout=180, env={**__import__("os").environ, "OMP_NUM_THREADS": "2"})
+    import os
+    import signal
+
+    proc = subprocess.Popen([sys.executable, str(script), str(dataset_path), str(task)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env={**os.environ, "OMP_NUM_THREADS": "2"})
+    try:
+        out, err = proc.communicate(timeout=180)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)  # the blocked workers too, not only their parent
+        proc.communicate()
+        pytest.fail("the DataLoader workers made no batch in 180 s (forked from a multi-threaded parent?)")
+    r = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
     assert r.returncode == 0, r.stderr[-2000:]
     n, of = r.stdout.split()[1::2]
     assert n == of and int(n) > 0, r.stdout
