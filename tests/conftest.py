@@ -5,7 +5,13 @@ from __future__ import annotations
 import importlib.util
 import os
 
-os.environ.setdefault("OMP_NUM_THREADS", "2")
+# The suite runs on pytest-xdist workers (pyproject: ``-n auto --dist loadgroup``): each worker gets its share of the
+# cores for torch/OpenMP so that two workers on 2 cores do not oversubscribe them (numba kernels already run on one
+# thread: tests/augment/conftest.py). Without xdist (``-n 0``) the process keeps both cores.
+_N_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+if "OMP_NUM_THREADS" not in os.environ or os.environ.get("UMI_AUG_TESTS_SET_OMP") == "1":  # not the user's own
+    os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 2) // _N_WORKERS))
+    os.environ["UMI_AUG_TESTS_SET_OMP"] = "1"  # the controller's value, inherited by xdist workers: theirs replaces it
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "2")
 # torch 2.13's oneDNN AVX-512 JIT kernel for the backward of a 1x1 convolution segfaults on this project's AVX-512
@@ -113,3 +119,99 @@ def aug_assets(aug_session, aug_work):
     from tests.augment.conftest import small_config
 
     return prepare_session(aug_session, aug_work, small_config(), progress=False)
+
+
+# --- pytest-xdist: tests that share an expensive fixture run on one worker -------------------------------------------
+# ``--dist loadgroup`` cannot be fed by xdist_group marks on pytest 9.2 (xdist 3.8 still rewrites the removed
+# ``Item._nodeid``: pytest-dev/pytest-xdist#1386), so the grouping is done here: every worker computes the groups of
+# its (identical) collection and writes them to a file the controller named; the controller's scheduler reads it.
+_GROUPS_ENV = "UMI_AUG_XDIST_GROUPS"
+
+
+def _shared_fixture_keys(item) -> list[str]:
+    """The non-function-scoped fixtures of this project (not pytest's own) that ``item`` uses, as keys naming one
+    fixture *instance*: a session-scoped fixture is one instance per worker, a module-scoped one per module."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return []
+    keys = []
+    for name, defs in info.name2fixturedefs.items():
+        fixturedef = defs[-1]
+        if fixturedef.scope == "function" or not fixturedef.baseid.startswith("tests"):
+            continue
+        where = fixturedef.baseid if fixturedef.scope in ("session", "package") else item.module.__name__
+        keys.append(f"{name}:{where}")
+    return keys
+
+
+def xdist_groups(items) -> dict[str, str]:
+    """nodeid -> group name: the connected components of "uses the same shared fixture instance" (union-find), so
+    that every session/module fixture is built on one worker only instead of once per worker (``umi-aug demo``
+    once, not twice). Tests that share nothing are left out (scheduled one by one)."""
+    parent: dict[str, str] = {}
+
+    def find(x: str) -> str:
+        while parent.setdefault(x, x) != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    uses = {item.nodeid: _shared_fixture_keys(item) for item in items}
+    for keys in uses.values():
+        for a, b in zip(keys, keys[1:]):
+            parent[find(a)] = find(b)
+    return {nodeid: find(keys[0]) for nodeid, keys in uses.items() if keys}
+
+
+def pytest_configure(config):
+    """Controller of an xdist run: name the file the workers write the fixture groups to."""
+    import tempfile
+
+    if (config.pluginmanager.hasplugin("xdist") and not hasattr(config, "workerinput")
+            and config.getoption("dist", "no") == "loadgroup" and _GROUPS_ENV not in os.environ):
+        folder = tempfile.mkdtemp(prefix="umi_aug_xdist_")
+        os.environ[_GROUPS_ENV] = os.path.join(folder, "groups.json")  # inherited by the workers started next
+        config._umi_aug_groups_dir = folder
+
+
+def pytest_unconfigure(config):
+    import shutil
+
+    folder = getattr(config, "_umi_aug_groups_dir", None)
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop(_GROUPS_ENV, None)
+
+
+def pytest_collection_modifyitems(config, items):
+    path = os.environ.get(_GROUPS_ENV)
+    if not path or not hasattr(config, "workerinput"):
+        return
+    import json
+
+    tmp = f"{path}.{config.workerinput['workerid']}.tmp"
+    with open(tmp, "w") as f:
+        json.dump(xdist_groups(items), f)
+    os.replace(tmp, path)  # every worker writes the same map; the last complete one stays
+
+
+def pytest_xdist_make_scheduler(config, log):
+    if config.getoption("dist", "no") != "loadgroup" or _GROUPS_ENV not in os.environ:
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class FixtureGroupScheduling(LoadScopeScheduling):
+        """Load-scope scheduling whose scopes are :func:`xdist_groups` (largest first); other tests one by one."""
+
+        _groups: dict[str, str] | None = None
+
+        def _split_scope(self, nodeid: str) -> str:
+            if self._groups is None:
+                import json
+
+                with open(os.environ[_GROUPS_ENV]) as f:  # written before the workers reported their collection
+                    self._groups = json.load(f)
+            group = self._groups.get(nodeid)
+            return f"group {group}" if group else nodeid
+
+    return FixtureGroupScheduling(config, log)
