@@ -71,3 +71,16 @@ def log_to_file(path: str | os.PathLike, quiet: tuple[str, ...] = ("robosuite", 
     root.setLevel(logging.INFO)
     for name in quiet:
         logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def background_child_setup(niceness: int = 10) -> None:
+    """``preexec_fn`` of a helper process that only uses a core the pipeline leaves idle: low priority (``nice``),
+    and killed with its parent (Linux ``PR_SET_PDEATHSIG``: a Ctrl-C of the pipeline leaves no helper running)."""
+    import ctypes
+    import signal
+
+    os.nice(niceness)
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass

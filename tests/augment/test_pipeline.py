@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import pickle
 import subprocess
 import sys
@@ -41,7 +42,7 @@ def test_obstacle_gaussians_fitted_per_asset_on_first_use(aug_session, tmp_path)
     import shutil
 
     from umi_aug.augment import prepare_session
-    from umi_aug.augment.session_assets import obstacle_stage
+    from umi_aug.augment.obstacle_stage import obstacle_stage
     from umi_aug.errors import AugmentError
 
     work = tmp_path / "work"
@@ -62,6 +63,50 @@ def test_obstacle_gaussians_fitted_per_asset_on_first_use(aug_session, tmp_path)
         prepare_session(aug_session, work, small_config(mode="obstacle", obstacle=dataclasses.replace(
             cfg.obstacle, assets=("box", "no-such-asset"))), progress=False)
     shutil.rmtree(work / "obstacles")
+
+
+def test_predicted_obstacle_asset_is_the_first_attempts_draw(aug_assets):
+    """The asset the exporter has fitted ahead of time is the one the planner's first attempt places."""
+    from umi_aug.augment.plan import first_attempt_obstacle_asset, first_attempt_obstacle_assets, try_plan_episode
+
+    cfg = aug_assets.cfg
+    predicted = [first_attempt_obstacle_asset(cfg, 0, a) for a in range(4)]
+    assert set(predicted) <= set(cfg.obstacle.assets)
+    assert first_attempt_obstacle_assets(cfg, [0]) == list(dict.fromkeys(predicted[:cfg.n_per_demo]))
+    first_tries = 0
+    for aug_id in range(4):
+        out = try_plan_episode(aug_assets, 0, aug_id, "obstacle")
+        if out.planned is not None and out.attempts == 1:
+            assert out.planned.obstacle.asset == predicted[aug_id], aug_id
+            first_tries += 1
+    assert first_tries > 0
+    import dataclasses
+
+    assert first_attempt_obstacle_assets(dataclasses.replace(cfg, mode="freespace"), [0]) == []
+
+
+@pytest.mark.slow  # a real fit in a nice-10 child (~15-30 s on 2 busy cores)
+def test_obstacle_prefit_in_a_background_process(aug_session, tmp_path, monkeypatch):
+    """start_obstacle_prefit fits the named assets in a low-priority child (the stage the episodes then read
+    from the cache), and starts nothing when every stage is cached, fitting is off, or it is turned off."""
+    import dataclasses
+
+    from umi_aug.augment.obstacle_stage import obstacle_stage, obstacle_stage_folder, start_obstacle_prefit
+
+    base = small_config(mode="obstacle")
+    cfg = dataclasses.replace(base, obstacle=dataclasses.replace(base.obstacle, fit_gaussians=True, n_gaussians=150))
+    work = tmp_path / "work"
+    child = start_obstacle_prefit(work, cfg, ["box"])
+    assert child is not None and child.wait(timeout=300) == 0, (work / "obstacles" / "prefit.log").read_text()
+    st = obstacle_stage(work, cfg, "box")
+    assert st.skipped and st.info["gaussians"] == 150  # fitted by the child, read from the cache here
+    assert os.getpriority(os.PRIO_PROCESS, 0) == 0  # the parent's priority is untouched
+    assert start_obstacle_prefit(work, cfg, ["box"]) is None  # cached
+    assert start_obstacle_prefit(work, base, ["bottle"]) is None  # fit_gaussians off: nothing worth a process
+    monkeypatch.setenv("UMI_AUG_NO_OBSTACLE_PREFIT", "1")
+    assert start_obstacle_prefit(work, cfg, ["bottle"]) is None
+    assert not list((work / "obstacles").glob(".prefit-*.pkl"))  # the child removed its config
+    assert not (work / obstacle_stage_folder("bottle")).exists()
 
 
 def test_assets_pickle_light(aug_assets):

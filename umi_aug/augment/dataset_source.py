@@ -39,6 +39,7 @@ import numpy as np
 
 from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig
+from umi_aug.augment.obstacle_stage import check_obstacle_assets
 from umi_aug.augment.session_assets import (
     _PROCESS_CACHE,
     OBSTACLE_WORK_KEY,
@@ -46,7 +47,6 @@ from umi_aug.augment.session_assets import (
     SessionAssets,
     _stage_contact,
     _stage_gripper_mask,
-    check_obstacle_assets,
 )
 from umi_aug.errors import AugmentError, UmiAugError
 

@@ -33,7 +33,8 @@ import numpy as np
 from umi_aug.augment.config import AugmentConfig, config_hash
 from umi_aug.augment.encode import FrameEncoder, can_encode_ahead, write_encoded
 from umi_aug.augment.executor import map_ordered, usable_cores
-from umi_aug.augment.plan import MODE_CODES, PlannedEpisode, episode_seed, try_plan_episode
+from umi_aug.augment.plan import (MODE_CODES, PlannedEpisode, episode_seed, first_attempt_obstacle_assets,
+                                  try_plan_episode)
 from umi_aug.augment.render import render_episode_frames
 from umi_aug.augment.session_assets import OVERLAY_MASK_RULE, SessionAssets, prepare_session, session_fingerprint
 from umi_aug.errors import AugmentError, UmiAugError
@@ -518,8 +519,9 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
     elif is_dataset:
         # scenes built per group when its first episode is generated (cached on disk), never all up front
         assets = dsrc.prepare_dataset(session_dir, work, cfg, dataset_input, progress=progress, lazy=True)
-    else:
-        assets = prepare_session(session_dir, work, cfg, progress=progress)
+    else:  # the obstacle assets the jobs' first attempts draw are fitted beside the 3DGS training
+        assets = prepare_session(session_dir, work, cfg, progress=progress,
+                                 prefit_obstacles=() if finished else first_attempt_obstacle_assets(cfg, range(n_src)))
     jobs = export_jobs(assets)
     if finished:
         log.info("export: %s is complete for this configuration; nothing to do", out)

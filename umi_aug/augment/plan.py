@@ -21,7 +21,8 @@ from umi_aug.errors import AugmentError, ReconError, TrajError
 __all__ = ["MODE_CODES", "episode_seed", "ObstacleRecord", "PlannedEpisode", "PlanOutcome", "plan_episode",
            "try_plan_episode"]
 
-from umi_aug.augment.session_assets import SessionAssets, scaled_obstacle_asset
+from umi_aug.augment.obstacle_stage import scaled_obstacle_asset
+from umi_aug.augment.session_assets import SessionAssets
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +131,28 @@ def _frames_clear_of_hull(problem, obstacle, T_world_cam: np.ndarray) -> bool:
     return not inside
 
 
+def draw_obstacle_asset(oc, rng: np.random.Generator) -> str:
+    """The obstacle asset of one planning attempt: the first draw of the attempt's generator."""
+    return oc.assets[int(rng.integers(len(oc.assets)))]
+
+
+def first_attempt_obstacle_asset(cfg, demo_index: int, aug_id: int) -> str:
+    """The obstacle asset that the first planning attempt of obstacle job ``(demo_index, aug_id)`` draws (a later
+    attempt, after a failed one, draws again)."""
+    rng = np.random.default_rng([episode_seed(cfg.seed, int(demo_index), int(aug_id), "obstacle"), 0])
+    return draw_obstacle_asset(cfg.obstacle, rng)
+
+
+def first_attempt_obstacle_assets(cfg, demo_indices) -> list[str]:
+    """The distinct obstacle assets of :func:`first_attempt_obstacle_asset` over the run's obstacle-mode jobs, in
+    the order the export first needs them (cheap: one random draw per job, nothing planned); [] without obstacle
+    mode."""
+    if "obstacle" not in cfg.modes:
+        return []
+    jobs = ((d, a) for d in demo_indices for a in range(cfg.n_per_demo))
+    return list(dict.fromkeys(first_attempt_obstacle_asset(cfg, d, a) for d, a in jobs))
+
+
 def try_plan_episode(assets: SessionAssets, demo_index: int, aug_id: int, mode: str) -> PlanOutcome:
     """:func:`plan_episode` with the failure record (see there)."""
     from umi_aug.recon.obstacles import sample_obstacle_placement
@@ -150,7 +173,7 @@ def try_plan_episode(assets: SessionAssets, demo_index: int, aug_id: int, mode: 
         try:
             if mode == "obstacle":
                 oc = cfg.obstacle
-                name = oc.assets[int(rng.integers(len(oc.assets)))]
+                name = draw_obstacle_asset(oc, rng)
                 scale = float(rng.uniform(*oc.scale_range))
                 asset = scaled_obstacle_asset(name, scale)
                 band = max(SUPPORT_BAND_M, 2.0 * float(getattr(assets.sdf, "voxel", 0.0)))

@@ -27,20 +27,21 @@ import hashlib
 import json
 import logging
 import os
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from umi_aug.augment.cache import StageResult, build_lock, run_stage
+from umi_aug.augment.cache import StageResult, run_stage
 from umi_aug.augment.config import AugmentConfig
+from umi_aug.augment.obstacle_stage import (check_obstacle_assets, load_obstacle_asset, obstacle_lock,
+                                            obstacle_stage, start_obstacle_prefit)
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import AugmentError, UmiAugError
 
-__all__ = ["DemoInfo", "SessionAssets", "prepare_session", "session_fingerprint", "scaled_obstacle_asset",
-           "load_obstacle_asset", "OBSTACLE_WORK_KEY"]
+__all__ = ["DemoInfo", "SessionAssets", "prepare_session", "session_fingerprint", "OBSTACLE_WORK_KEY"]
 
 #: ``SessionAssets.paths`` key of the folder whose ``obstacles/`` holds the per-asset obstacle stages.
 OBSTACLE_WORK_KEY = "obstacle_work"
@@ -178,7 +179,7 @@ class SessionAssets:
 
         def load():
             try:  # one lock per asset: two workers fit two different assets at once
-                with build_lock(work / "obstacles", f".{obstacle_stage_folder(asset)[10:]}.lock"):
+                with obstacle_lock(work, asset):
                     st = obstacle_stage(work, self.cfg, asset)
             except UmiAugError as exc:
                 raise AugmentError(f"stage obstacles/{asset} failed: {exc}") from exc
@@ -233,24 +234,6 @@ class SessionAssets:
     def augmentable(self) -> list[int]:
         """Indices of the demos that have a contact frame."""
         return [d.index for d in self.demos if d.contact_index is not None]
-
-
-def scaled_obstacle_asset(name: str, scale: float):
-    """Asset ``name`` (procedural or mesh path) scaled by ``scale`` about its object origin."""
-    from pathlib import Path
-
-    from umi_aug.recon.obstacles import PROCEDURAL_ASSETS, load_mesh_asset, procedural_asset
-
-    if name in PROCEDURAL_ASSETS:
-        return procedural_asset(name, scale)
-    if Path(name).is_file():
-        return load_mesh_asset(name, scale=scale)
-    raise AugmentError(f"obstacle asset {name!r}: neither a procedural asset {PROCEDURAL_ASSETS} nor a mesh file")
-
-
-def load_obstacle_asset(asset: str):
-    """Procedural asset name or mesh file path → :class:`umi_aug.recon.ObstacleAsset` (unscaled)."""
-    return scaled_obstacle_asset(asset, 1.0)
 
 
 def session_fingerprint(session_dir: Path) -> str:
@@ -426,48 +409,9 @@ def _stage_gripper_mask(work: Path, cfg: AugmentConfig, fp: str, dataset: Path, 
                      {"session": fp, "contact": contact.key}, fn)
 
 
-def check_obstacle_assets(cfg: AugmentConfig) -> None:
-    """Load every obstacle asset of an obstacle-mode run once, up front (their Gaussians are fitted lazily, so
-    a bad name or mesh file must fail here, before any work, not in an episode). Raises :class:`AugmentError`."""
-    if "obstacle" not in cfg.modes:
-        return
-    for name in cfg.obstacle.assets:
-        try:
-            load_obstacle_asset(name)
-        except AugmentError:
-            raise
-        except (UmiAugError, OSError, ValueError) as exc:
-            raise AugmentError(f"obstacle asset {name!r}: {exc}") from exc
-
-
-def obstacle_stage_folder(name: str) -> str:
-    """``obstacles/<slug>-<hash8>``: the stage folder of obstacle asset ``name`` (relative to the work folder)."""
-    slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).name)[:40]
-    return f"obstacles/{slug}-{hashlib.sha256(name.encode()).hexdigest()[:8]}"
-
-
-def obstacle_stage(work: Path, cfg: AugmentConfig, name: str) -> StageResult:
-    """The ``obstacles/<asset>`` stage: the Gaussians of obstacle asset ``name`` (a procedural name or a mesh
-    path) in its object frame, ``scene.ply``. Keyed by the asset and the Gaussian settings only (not the session,
-    not the other assets). Callers that may run concurrently hold the asset's :func:`build_lock` (as
-    :meth:`SessionAssets.obstacle_gaussians` does)."""
-    def fn(out: Path):
-        from umi_aug.splat import write_ply
-        from umi_aug.splat.obstacle_gaussians import obstacle_gaussians
-
-        g = obstacle_gaussians(load_obstacle_asset(name), cache_dir=out / "cache", fit=cfg.obstacle.fit_gaussians,
-                               n_gaussians=cfg.obstacle.n_gaussians, seed=cfg.seed)
-        write_ply(out / "scene.ply", g)
-        return {"ply": "scene.ply"}, ["scene.ply"], {"asset": name, "gaussians": int(g.n)}
-
-    folder = obstacle_stage_folder(name)
-    conf = {"asset": name, "fit": cfg.obstacle.fit_gaussians, "n_gaussians": cfg.obstacle.n_gaussians,
-            "seed": cfg.seed}
-    return run_stage(folder, work, conf, {}, fn)
-
-
 def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike, cfg: AugmentConfig,
-                    *, renders: bool = True, progress: bool = True) -> SessionAssets:
+                    *, renders: bool = True, progress: bool = True,
+                    prefit_obstacles: Sequence[str] = ()) -> SessionAssets:
     """Run (or skip, when cached) the session stages the mode needs and return the light handle.
 
     Args:
@@ -476,6 +420,9 @@ def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike,
         cfg: :class:`AugmentConfig`.
         renders: False → plan-only (skip the 3DGS, mask and obstacle-Gaussian stages).
         progress: progress bars of the long stages (3DGS training).
+        prefit_obstacles: obstacle assets the caller will need (obstacle mode, rendering): fitted by a background
+            process (:func:`~umi_aug.augment.obstacle_stage.start_obstacle_prefit`) while the 3DGS trains, instead
+            of on first use. Empty: every asset is fitted when an episode first uses it.
     Raises:
         AugmentError: missing session parts, a stage's failure (wrapped with the stage's name).
     """
@@ -494,6 +441,8 @@ def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike,
     if any(d.T_world_cam is None or d.gripper_width is None for d in sess.demos):
         raise AugmentError(f"{session_dir}: every demo needs camera_trajectory.csv and widths in dataset.zarr.zip")
     fp = session_fingerprint(session_dir)
+    if renders:  # a bad asset name or mesh fails here, before any stage runs (their Gaussians are fitted later)
+        check_obstacle_assets(cfg)
     if renders:  # a cold numba cache compiles the 3DGS kernels in a child process while SfM runs
         from umi_aug.splat.warmup import start_background_compile
 
@@ -512,11 +461,12 @@ def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike,
     mask = np.zeros((cfg.image_size, cfg.image_size), bool)
     mask_info: dict = {}
     if renders:
+        if "obstacle" in cfg.modes and prefit_obstacles:  # beside the 3DGS training (part of a core is idle)
+            start_obstacle_prefit(work, cfg, [n for n in prefit_obstacles if n in cfg.obstacle.assets])
         try:
             stages["splat"] = splat = _stage_splat(session_dir, work, cfg, fp, recon, contact, progress)
             stages["gripper_mask"] = gm = _stage_gripper_mask(work, cfg, fp, dataset, demos, contact)
             if "obstacle" in cfg.modes:  # each asset's Gaussians are fitted when an episode first uses it
-                check_obstacle_assets(cfg)
                 paths[OBSTACLE_WORK_KEY] = str(work)
         except UmiAugError as exc:
             raise AugmentError(f"stage failed: {exc}") from exc

@@ -19,6 +19,8 @@ import os
 import subprocess
 import sys
 
+from umi_aug.runtime import background_child_setup
+
 __all__ = ["compile_kernels", "kernel_cache_is_warm", "start_background_compile"]
 
 
@@ -65,19 +67,6 @@ def kernel_cache_is_warm() -> bool:
     return True
 
 
-def _child_setup() -> None:
-    """In the child before exec: low priority, and killed with its parent (Linux ``PR_SET_PDEATHSIG``; a Ctrl-C
-    of the pipeline does not leave a compiler running)."""
-    import ctypes
-    import signal
-
-    os.nice(10)
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # pragma: no cover - not Linux
-        pass
-
-
 def start_background_compile(force: bool = False) -> subprocess.Popen | None:
     """Start :func:`compile_kernels` in a child process (``nice`` 10, 1 thread, output discarded) unless the
     kernel cache is already warm or a child of this process is still running; returns the child, or None (nothing
@@ -94,7 +83,7 @@ def start_background_compile(force: bool = False) -> subprocess.Popen | None:
     try:
         _child = subprocess.Popen([sys.executable, "-m", "umi_aug.splat.warmup"], env=env, stdin=subprocess.DEVNULL,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                preexec_fn=_child_setup)
+                                preexec_fn=background_child_setup)
     except OSError:
         return None
     return _child
