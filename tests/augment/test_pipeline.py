@@ -256,24 +256,31 @@ def test_errors_name_the_problem(aug_assets):
 
 
 @pytest.mark.slow  # 5-40 s on 2 shared cores, depending on load
-def test_real_3dgs_training_stage(aug_assets, aug_session, aug_work, tmp_path):
-    """The splat stage with the fisheye 3DGS trainer (a 40-step fit), reusing the cached reconstruction."""
+def test_real_3dgs_training_stage(aug_assets, aug_session, aug_work, tmp_path, monkeypatch):
+    """The splat stage with the fisheye 3DGS trainer (a 40-step fit), reusing the cached reconstruction; the
+    obstacle prefit starts right before the training, and not when the stage is cached."""
     import math
     import shutil
 
     from umi_aug.augment import SplatStageConfig, plan_episode, prepare_session, render_episode_frames
+    from umi_aug.augment import session_assets
 
+    prefits = []
+    monkeypatch.setattr(session_assets, "start_obstacle_prefit", lambda work, cfg, names: prefits.append(names))
     for stage in ("reconstruct", "contact"):
         shutil.copytree(aug_work / stage, tmp_path / stage)
-    cfg = small_config(mode="freespace", splat=SplatStageConfig(
+    cfg = small_config(mode="both", splat=SplatStageConfig(
         iterations=40, max_gaussians=3000, sh_degree=0, image_size=160,
         extra={"eval_every": 40, "checkpoint_every": 40, "refine_start": 10, "refine_every": 10,
                "train_eval_views": 2, "sheet_views": 1}))
-    a = prepare_session(aug_session, tmp_path, cfg, progress=False)
+    a = prepare_session(aug_session, tmp_path, cfg, progress=False, prefit_obstacles=("box", "not-configured"))
     assert a.stages["reconstruct"].skipped and a.stages["contact"].skipped and not a.stages["splat"].skipped
+    assert prefits == [["box"]]  # configured assets only
     info = a.stages["splat"].info
     assert info["trained"] and math.isfinite(info["heldout_psnr"]) and 0 < info["gaussians"] <= 3000
-    assert prepare_session(aug_session, tmp_path, cfg, progress=False).stages["splat"].skipped
+    again = prepare_session(aug_session, tmp_path, cfg, progress=False, prefit_obstacles=("box",))
+    assert again.stages["splat"].skipped
+    assert prefits == [["box"]]  # cached scene: no prefit
     p = plan_episode(a, 0, 0, "freespace")
     frames = render_episode_frames(a, p, [0, p.splice_index // 2])
     assert frames[:, ~a.gripper_mask].std() > 5.0  # a scene, not a blank image

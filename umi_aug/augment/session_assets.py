@@ -29,7 +29,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -329,7 +329,10 @@ def _init_only_gaussians(cloud_path: Path, sh_degree: int):
 
 
 def _stage_splat(session_dir: Path, work: Path, cfg: AugmentConfig, fp: str, recon: StageResult,
-                 contact: StageResult, progress: bool) -> StageResult:
+                 contact: StageResult, progress: bool, beside_training: Callable[[], object] | None = None
+                 ) -> StageResult:
+    """The scene's 3DGS stage; ``beside_training`` is called right before the training starts (not when the stage
+    is cached or untrained): work that should use the core the training leaves idle."""
     sc = cfg.splat
 
     def fn(out: Path):
@@ -349,6 +352,8 @@ def _stage_splat(session_dir: Path, work: Path, cfg: AugmentConfig, fp: str, rec
                                 holdout_every=sc.holdout_every, seed=cfg.seed, **dict(sc.extra))
         rows = json.loads((contact.dir / "contacts.json").read_text())
         contacts = {r["name"]: int(r["splice_index"]) for r in rows if r["splice_index"] is not None}
+        if beside_training is not None:
+            beside_training()
         res = train_splat_from_session(session_dir, out, cfg=tcfg, init_cloud=recon.path("cloud"),
                                        image_size=sc.image_size, contact=contacts, progress=progress)
         ply = Path(res.ply_path).resolve()
@@ -422,7 +427,8 @@ def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike,
         progress: progress bars of the long stages (3DGS training).
         prefit_obstacles: obstacle assets the caller will need (obstacle mode, rendering): fitted by a background
             process (:func:`~umi_aug.augment.obstacle_stage.start_obstacle_prefit`) while the 3DGS trains, instead
-            of on first use. Empty: every asset is fitted when an episode first uses it.
+            of on first use (not when the 3DGS stage is cached). Empty: every asset is fitted when an episode
+            first uses it.
     Raises:
         AugmentError: missing session parts, a stage's failure (wrapped with the stage's name).
     """
@@ -461,10 +467,12 @@ def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike,
     mask = np.zeros((cfg.image_size, cfg.image_size), bool)
     mask_info: dict = {}
     if renders:
-        if "obstacle" in cfg.modes and prefit_obstacles:  # beside the 3DGS training (part of a core is idle)
-            start_obstacle_prefit(work, cfg, [n for n in prefit_obstacles if n in cfg.obstacle.assets])
+        prefit = None
+        if "obstacle" in cfg.modes and prefit_obstacles:  # beside the 3DGS training (it leaves part of a core idle)
+            names = [n for n in prefit_obstacles if n in cfg.obstacle.assets]
+            prefit = lambda: start_obstacle_prefit(work, cfg, names)  # noqa: E731
         try:
-            stages["splat"] = splat = _stage_splat(session_dir, work, cfg, fp, recon, contact, progress)
+            stages["splat"] = splat = _stage_splat(session_dir, work, cfg, fp, recon, contact, progress, prefit)
             stages["gripper_mask"] = gm = _stage_gripper_mask(work, cfg, fp, dataset, demos, contact)
             if "obstacle" in cfg.modes:  # each asset's Gaussians are fitted when an episode first uses it
                 paths[OBSTACLE_WORK_KEY] = str(work)
