@@ -53,7 +53,7 @@ NOT_RUN_HINT = {
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """Settings of the demo (small defaults: ~5.5 minutes on 2 free CPU cores, cold numba cache). Lengths in
+    """Settings of the demo (small defaults: ~4.5–5 minutes on 2 free CPU cores, cold numba cache). Lengths in
     metres."""
 
     out_dir: Path = Path("umi_aug_demo")
