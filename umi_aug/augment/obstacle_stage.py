@@ -15,6 +15,7 @@ import pickle
 import re
 import subprocess
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -96,7 +97,7 @@ def start_obstacle_prefit(work: Path, cfg: AugmentConfig, names: Sequence[str]) 
     """Fit the obstacle assets ``names`` in a background process (``nice`` 10, one thread, killed with its
     parent), each under its :func:`obstacle_lock`, so that the episodes find them cached. Meant to run beside the
     scene's 3DGS training, which leaves ~0.4 of the second core idle on 2 cores. Returns the child, or None when
-    there is nothing to fit (no names, fitting off, or every stage cached). Nothing depends on the child: an
+    there is nothing to fit (no names, fitting off, or every asset's stage folder already there). Nothing depends on the child: an
     episode that needs an asset first fits it itself (or waits for the child's lock); the child's own failures
     are only logged to ``obstacles/prefit.log`` (the episode's fit raises them where they count).
     ``UMI_AUG_NO_OBSTACLE_PREFIT=1`` turns it off."""
@@ -110,8 +111,10 @@ def start_obstacle_prefit(work: Path, cfg: AugmentConfig, names: Sequence[str]) 
         return None
     folder = Path(work) / "obstacles"
     folder.mkdir(parents=True, exist_ok=True)
-    cfg_path = folder / f".prefit-{os.getpid()}.pkl"
-    cfg_path.write_bytes(pickle.dumps(cfg))
+    fd, name = tempfile.mkstemp(prefix=".prefit-", suffix=".pkl", dir=folder)  # the child reads and removes it
+    with os.fdopen(fd, "wb") as f:
+        pickle.dump(cfg, f)
+    cfg_path = Path(name)
     env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1", MKL_NUM_THREADS="1")
     try:
         with open(folder / "prefit.log", "ab") as logf:
