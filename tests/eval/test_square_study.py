@@ -246,6 +246,8 @@ def test_report_marks_unevaluated_cells_and_counts_what_was_recorded(tmp_path, r
     assert f"| none | 10 | {n} | {100 * k / n:.1f} [" in md
     assert md.count("not evaluated yet") == 3 + 1  # none_n25, ours_n10, ours_n25; sweep θ = 50 (ours_n10)
     assert "| 40 | 5 |" in md and "| train/none_n10 | 2.0 |" in md
+    row40 = next(line for line in md.splitlines() if line.startswith("| 40 | 5 |")).split("|")
+    assert row40[7].strip().startswith("+0 [") and "/ +0.0 [" in row40[7]  # paired vs none_n10: the same rows
     assert Path(cfg.report_png).stat().st_size > 10_000
     assert rep["metrics"]["ours_n25"] is None and rep["fidelity"] is None
     assert json.loads((cfg.out / "report.json").read_text())["metrics"]["none_n10"]["n"] == n

@@ -205,17 +205,24 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
     sweep = [c for c in cells if c["theta"] is not None or (c["variant"] == "ours" and c["n"] == cfg.sweep_size)]
     if any(c["theta"] is not None for c in cells):
         L += ["", f"## Cone-angle sweep (`ours`, {cfg.sweep_size} demos, r = {cfg.radius_m} m)", "",
-              "| θ (°) | n | success | pre-grasp reached | lifted | closest approach: median mm [95 %] / ° |",
-              "|---:|---:|---|---|---|---|"]
+              "| θ (°) | n | success | pre-grasp reached | lifted | closest approach: median mm [95 %] / ° | "
+              f"paired vs `none_n{cfg.sweep_size}`: Δ mm [95 %] / Δ ° [95 %] |",
+              "|---:|---:|---|---|---|---|---|"]
+        from umi_aug.eval.square_study import record_eval_dir
+
         for c in sorted(sweep, key=lambda c: cfg.theta_deg if c["theta"] is None else c["theta"]):
             m = metrics[c["name"]]
             th = cfg.theta_deg if c["theta"] is None else c["theta"]
             if m is None:
-                L.append(f"| {th:g} | 0 | not evaluated yet | | | |")
+                L.append(f"| {th:g} | 0 | not evaluated yet | | | | |")
                 continue
-            ca = _closest(m)
+            p = paired_vs(record_eval_dir(cfg, c), record_eval_dir(cfg, {"name": f"none_n{cfg.sweep_size}"}))
+            pv = "—" if p is None else (
+                f"{p['closest_mm_diff_median']:+.0f} [{p['closest_mm_diff_ci95'][0]:+.0f}, "
+                f"{p['closest_mm_diff_ci95'][1]:+.0f}] / {p['closest_deg_diff_median']:+.1f} "
+                f"[{p['closest_deg_diff_ci95'][0]:+.1f}, {p['closest_deg_diff_ci95'][1]:+.1f}]")
             L.append(f"| {th:g} | {m['n']} | {_pct(m, 'success')} | {_pct(m, 'pregrasp_reached')} | "
-                     f"{_pct(m, 'lifted')} | {ca} |")
+                     f"{_pct(m, 'lifted')} | {_closest(m)} | {pv} |")
     L += ["", "## Rendering fidelity of `ours` against `gt_render` at the augmented poses", ""]
     if fid is None:
         L.append("Not computed yet (needs both datasets of the largest data size).")
