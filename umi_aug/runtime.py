@@ -73,9 +73,9 @@ def log_to_file(path: str | os.PathLike, quiet: tuple[str, ...] = ("robosuite", 
         logging.getLogger(name).setLevel(logging.WARNING)
 
 
-def background_child_setup(niceness: int = 10) -> None:
-    """``preexec_fn`` of a helper process that only uses a core the pipeline leaves idle: low priority (``nice``),
-    and killed with its parent (Linux ``PR_SET_PDEATHSIG``: a Ctrl-C of the pipeline leaves no helper running)."""
+def _background_child_setup(niceness: int = 10) -> None:
+    """``preexec_fn`` of :func:`start_background_helper`: low priority (``nice``), and killed with its parent
+    (Linux ``PR_SET_PDEATHSIG``: a Ctrl-C of the pipeline leaves no helper running)."""
     import ctypes
     import signal
 
@@ -84,3 +84,29 @@ def background_child_setup(niceness: int = 10) -> None:
         ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # pragma: no cover - not Linux
         pass
+
+
+def start_background_helper(module: str, args: list[str], *, stdin_bytes: bytes | None = None, output=None):
+    """Start ``python -m module *args`` as a helper that only uses a core the pipeline leaves idle: ``nice`` 10,
+    one thread per pool (OpenMP, MKL, numba), killed with its parent. ``stdin_bytes`` (small: it must fit the pipe)
+    is written to its stdin; ``output``: an open binary file for its stdout + stderr (None: discarded). Returns the
+    ``subprocess.Popen``, or None when no process could be started (callers treat the helper as optional)."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    sink = output if output is not None else subprocess.DEVNULL
+    try:
+        child = subprocess.Popen([sys.executable, "-m", module, *args], env=env,
+                                 stdin=subprocess.DEVNULL if stdin_bytes is None else subprocess.PIPE,
+                                 stdout=sink, stderr=subprocess.STDOUT if output is not None else subprocess.DEVNULL,
+                                 preexec_fn=_background_child_setup)
+    except OSError:
+        return None
+    if stdin_bytes is not None:
+        try:
+            child.stdin.write(stdin_bytes)
+            child.stdin.close()
+        except OSError:  # the child died at once: it reports nothing, the caller does without it
+            pass
+    return child

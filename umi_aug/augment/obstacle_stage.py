@@ -2,7 +2,8 @@
 use (:meth:`umi_aug.augment.SessionAssets.obstacle_gaussians`) or ahead of it by a background process
 (:func:`start_obstacle_prefit`) while the scene's 3DGS trains and leaves part of a core idle.
 
-Run as ``python -m umi_aug.augment.obstacle_stage CONFIG.pkl WORK ASSET...`` it is that background process.
+Run as ``python -m umi_aug.augment.obstacle_stage WORK ASSET...`` (the pickled config on stdin) it is that
+background process.
 """
 
 from __future__ import annotations
@@ -13,15 +14,17 @@ import logging
 import os
 import pickle
 import re
-import subprocess
 import sys
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig
 from umi_aug.errors import AugmentError, UmiAugError
+
+if TYPE_CHECKING:
+    import subprocess
 
 __all__ = ["check_obstacle_assets", "load_obstacle_asset", "obstacle_lock", "obstacle_stage", "obstacle_stage_folder",
            "scaled_obstacle_asset", "start_obstacle_prefit"]
@@ -97,12 +100,12 @@ def start_obstacle_prefit(work: Path, cfg: AugmentConfig, names: Sequence[str]) 
     """Fit the obstacle assets ``names`` in a background process (``nice`` 10, one thread, killed with its
     parent), each under its :func:`obstacle_lock`, so that the episodes find them cached. Meant to run beside the
     scene's 3DGS training, which leaves ~0.4 of the second core idle on 2 cores. Returns the child, or None when
-    there is nothing to fit (no names, fitting off, or every asset's stage folder already there). Nothing depends on the child: an
-    episode that needs an asset first fits it itself (or waits for the child's lock); the child's own failures
+    there is nothing to fit (no names, fitting off, or every asset's stage folder already there). Nothing depends
+    on the child: an episode that needs an asset first fits it itself (or waits for the child's lock); its failures
     are only logged to ``obstacles/prefit.log`` (the episode's fit raises them where they count).
     ``UMI_AUG_NO_OBSTACLE_PREFIT=1`` turns it off."""
     from umi_aug.augment.cache import read_manifest
-    from umi_aug.runtime import background_child_setup
+    from umi_aug.runtime import start_background_helper
 
     if os.environ.get("UMI_AUG_NO_OBSTACLE_PREFIT", "") not in ("", "0") or not cfg.obstacle.fit_gaussians:
         return None
@@ -111,29 +114,19 @@ def start_obstacle_prefit(work: Path, cfg: AugmentConfig, names: Sequence[str]) 
         return None
     folder = Path(work) / "obstacles"
     folder.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=".prefit-", suffix=".pkl", dir=folder)  # the child reads and removes it
-    with os.fdopen(fd, "wb") as f:
-        pickle.dump(cfg, f)
-    cfg_path = Path(name)
-    env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    try:
-        with open(folder / "prefit.log", "ab") as logf:
-            return subprocess.Popen([sys.executable, "-m", "umi_aug.augment.obstacle_stage", str(cfg_path), str(work),
-                                     *todo], env=env, stdin=subprocess.DEVNULL, stdout=logf, stderr=subprocess.STDOUT,
-                                    preexec_fn=background_child_setup)
-    except OSError as exc:  # pragma: no cover - no process could be started: the episodes fit on first use
-        log.info("obstacle prefit not started: %s", exc)
-        cfg_path.unlink(missing_ok=True)
-        return None
+    with open(folder / "prefit.log", "ab") as logf:  # the config goes over stdin: no file to leave behind
+        child = start_background_helper("umi_aug.augment.obstacle_stage", [str(work), *todo],
+                                        stdin_bytes=pickle.dumps(cfg), output=logf)
+    if child is None:  # pragma: no cover - no process could be started: the episodes fit on first use
+        log.info("obstacle prefit not started")
+    return child
 
 
-def _prefit_main(cfg_path: str, work: str, names: Sequence[str]) -> int:
-    """The child of :func:`start_obstacle_prefit`: fit each asset (cached ones are skipped), under its lock."""
+def _prefit_main(work: str, names: Sequence[str]) -> int:
+    """The child of :func:`start_obstacle_prefit` (its :class:`AugmentConfig` pickled on stdin): fit each asset
+    (cached ones are skipped), under its lock."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    try:
-        cfg = pickle.loads(Path(cfg_path).read_bytes())
-    finally:
-        Path(cfg_path).unlink(missing_ok=True)
+    cfg = pickle.loads(sys.stdin.buffer.read())
     status = 0
     for name in names:
         try:
@@ -147,4 +140,4 @@ def _prefit_main(cfg_path: str, work: str, names: Sequence[str]) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover - the child of start_obstacle_prefit (its test runs it)
-    sys.exit(_prefit_main(sys.argv[1], sys.argv[2], sys.argv[3:]))
+    sys.exit(_prefit_main(sys.argv[1], sys.argv[2:]))

@@ -17,9 +17,8 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 
-from umi_aug.runtime import background_child_setup
+from umi_aug.runtime import start_background_helper
 
 __all__ = ["compile_kernels", "kernel_cache_is_warm", "start_background_compile"]
 
@@ -79,13 +78,7 @@ def start_background_compile(force: bool = False) -> subprocess.Popen | None:
         return _child
     if not force and kernel_cache_is_warm():
         return None
-    env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    try:
-        _child = subprocess.Popen([sys.executable, "-m", "umi_aug.splat.warmup"], env=env, stdin=subprocess.DEVNULL,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                preexec_fn=background_child_setup)
-    except OSError:
-        return None
+    _child = start_background_helper("umi_aug.splat.warmup", [])
     return _child
 
 
