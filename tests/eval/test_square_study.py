@@ -7,6 +7,7 @@ recorders so the driver's bookkeeping is checked in well under a second per test
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -249,6 +250,14 @@ def test_report_marks_unevaluated_cells_and_counts_what_was_recorded(tmp_path, r
     row40 = next(line for line in md.splitlines() if line.startswith("| 40 | 5 |")).split("|")
     assert row40[7].strip().startswith("+0 [") and "/ +0.0 [" in row40[7]  # paired vs none_n10: the same rows
     assert Path(cfg.report_png).stat().st_size > 10_000
+    assert f"]({os.path.relpath(cfg.report_png, Path(cfg.report_md).parent)})" in md  # the figure is shown
+    from umi_aug.eval.square_report import _paired_deg  # the figure's orientation panels: same rows, no difference
+
+    assert _paired_deg(cfg, {"name": "ours_n10_theta40"}, 10) == (0.0, 0.0, 0.0)
+    assert _paired_deg(cfg, {"name": "ours_n25"}, 25) is None
+    rows_b = [dict(r, pregrasp_min_rot_err_deg=r["pregrasp_min_rot_err_deg"] - 2.0) for r in rows[:5]]
+    _write_results(st.eval_dir(cfg, {"name": "ours_n10_theta50"}), rows_b)
+    assert _paired_deg(cfg, {"name": "ours_n10_theta50"}, 10) == pytest.approx((-2.0, -2.0, -2.0))
     assert rep["metrics"]["ours_n25"] is None and rep["fidelity"] is None
     assert json.loads((cfg.out / "report.json").read_text())["metrics"]["none_n10"]["n"] == n
 

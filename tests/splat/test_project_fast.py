@@ -126,10 +126,12 @@ def test_fast_projection_float32_close_to_float64(rng):
 @pytest.mark.parametrize("filt", ("mip", "none"))
 def test_fast_projection_gradcheck(rng, filt):
     """Central finite differences (torch gradcheck, float64) of the numba forward against its backward on a tiny
-    case: one Gaussian near the optical axis (series branch), one past 90 deg, one ordinary, SH degree 3."""
+    case: one Gaussian near the optical axis (series branch), one past 90 deg, one ordinary, SH degree 3. The one
+    past 90 deg (98.5 deg) projects to (10.8, 7.3) px, inside the 64x48 image (at azimuth -2.0 rad it fell at
+    y = -1.1 px, and a small, faint draw was culled: a flaky test)."""
     intr = _lens()
     T = random_pose(rng)
-    p_cam = np.stack([rays_at(2e-3, 0.4) * 1.2, rays_at(1.72, -2.0) * 0.9, rays_at(0.7, 1.1) * 2.0])
+    p_cam = np.stack([rays_at(2e-3, 0.4) * 1.2, rays_at(1.72, -2.5) * 0.9, rays_at(0.7, 1.1) * 2.0])
     n = len(p_cam)
     g = Gaussians(
         means=torch.as_tensor(p_cam @ T[:3, :3].T + T[:3, 3]),
