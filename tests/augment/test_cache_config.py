@@ -66,3 +66,21 @@ def test_config_hash_and_validation():
                 dict(image_size=0)):
         with pytest.raises(AugmentError):
             AugmentConfig(**bad)
+
+
+def test_obstacle_fit_iterations_in_the_keys_only_when_changed():
+    """``ObstacleConfig.fit_iterations`` at its default hashes like the settings before it existed (earlier work
+    folders and exports keep their keys); another value changes the key; the default is the fit's own default."""
+    import dataclasses
+
+    from umi_aug.augment.config import OBSTACLE_FIT_ITERATIONS, ObstacleConfig, obstacle_key
+    from umi_aug.splat.obstacle_gaussians import ObstacleGaussianConfig
+
+    assert OBSTACLE_FIT_ITERATIONS == ObstacleGaussianConfig().fit_iterations
+    o = ObstacleConfig()
+    before = {f.name: getattr(o, f.name) for f in dataclasses.fields(o) if f.name != "fit_iterations"}
+    assert config_hash(obstacle_key(o)) == config_hash(before)
+    assert config_hash(obstacle_key(ObstacleConfig(fit_iterations=50))) != config_hash(before)
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(AugmentError, match="fit_iterations"):
+            AugmentConfig(obstacle=ObstacleConfig(fit_iterations=bad))

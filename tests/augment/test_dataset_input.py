@@ -198,11 +198,12 @@ def test_real_demonstration_end_to_end(tmp_path):
         assert dst["camera0_rgb"].chunks == src["camera0_rgb"].chunks
         np.testing.assert_array_equal(dst["camera0_rgb"][:400:50], src["camera0_rgb"][::50])
         np.testing.assert_array_equal(dst["robot0_eef_pos"][:400], src["robot0_eef_pos"][:])
-        new = dst.get_episode(1)
+        sl = dst.get_episode_slice(1)  # read what is checked, not the whole episode's frames (~3 s of decoding)
+        new_pos = dst["robot0_eef_pos"][sl]
         splice = int(rec["aug_splice_index"][1])
-        assert np.isfinite(new["robot0_eef_pos"]).all() and new["camera0_rgb"][:splice].std() > 5
+        assert np.isfinite(new_pos).all() and dst["camera0_rgb"][sl.start:sl.start + splice:4].std() > 5
         # the augmented episode starts elsewhere and ends on the demonstration's replayed tail
-        np.testing.assert_allclose(new["robot0_eef_pos"][-1], src["robot0_eef_pos"][399], atol=1e-5)
+        np.testing.assert_allclose(new_pos[-1], src["robot0_eef_pos"][399], atol=1e-5)
     assert Path(s.pictures["contact_sheet"]).is_file()
 
 

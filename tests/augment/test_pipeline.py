@@ -7,6 +7,7 @@ import pickle
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -35,9 +36,10 @@ def test_stages_are_cached_and_skipped(aug_assets, aug_session, aug_work):
     assert other.mask_info["source"] == "estimated" and other.gripper_mask.shape == (SIZE, SIZE)
 
 
-def test_obstacle_gaussians_fitted_per_asset_on_first_use(aug_session, tmp_path):
+def test_obstacle_gaussians_fitted_per_asset_on_first_use(aug_session, aug_assets, aug_work, tmp_path):
     """Only the assets an episode renders are fitted; once, cached across handles and processes' copies; a bad
-    asset name fails up front; an asset outside the run's list is refused."""
+    asset name fails up front; an asset outside the run's list is refused. Starts from a copy of the shared work
+    folder without its obstacles (the session's stages are cache hits: the obstacle mode shares their keys)."""
     import dataclasses
     import shutil
 
@@ -45,9 +47,10 @@ def test_obstacle_gaussians_fitted_per_asset_on_first_use(aug_session, tmp_path)
     from umi_aug.augment.obstacle_stage import obstacle_stage
     from umi_aug.errors import AugmentError
 
-    work = tmp_path / "work"
+    work = Path(shutil.copytree(aug_work, tmp_path / "work", ignore=shutil.ignore_patterns("obstacles")))
     cfg = small_config(mode="obstacle", splat=small_config().splat)
     assets = prepare_session(aug_session, work, cfg, progress=False)
+    assert assets.stages["reconstruct"].skipped and assets.stages["splat"].skipped  # (the overlay's may be redone)
     assert not (work / "obstacles").exists()  # nothing fitted yet
     g = assets.obstacle_gaussians("box")
     assert g.n > 0 and g.means.isfinite().all()
@@ -85,7 +88,7 @@ def test_predicted_obstacle_asset_is_the_first_attempts_draw(aug_assets):
     assert first_attempt_obstacle_assets(dataclasses.replace(cfg, mode="freespace"), [0]) == []
 
 
-@pytest.mark.slow  # a real fit in a nice-10 child (~15-30 s on 2 busy cores)
+@pytest.mark.slow  # a real (short: 40 steps) fit in a nice-10 child (~5-10 s on 2 busy cores)
 def test_obstacle_prefit_in_a_background_process(aug_session, tmp_path, monkeypatch):
     """start_obstacle_prefit fits the named assets in a low-priority child (the stage the episodes then read
     from the cache), and starts nothing when every stage is cached, fitting is off, or it is turned off."""
@@ -94,7 +97,8 @@ def test_obstacle_prefit_in_a_background_process(aug_session, tmp_path, monkeypa
     from umi_aug.augment.obstacle_stage import obstacle_stage, obstacle_stage_folder, start_obstacle_prefit
 
     base = small_config(mode="obstacle")
-    cfg = dataclasses.replace(base, obstacle=dataclasses.replace(base.obstacle, fit_gaussians=True, n_gaussians=150))
+    cfg = dataclasses.replace(base, obstacle=dataclasses.replace(base.obstacle, fit_gaussians=True, n_gaussians=150,
+                                                                 fit_iterations=40))
     work = tmp_path / "work"
     child = start_obstacle_prefit(work, cfg, ["box"])
     assert child is not None and child.wait(timeout=300) == 0, (work / "obstacles" / "prefit.log").read_text()

@@ -1,28 +1,31 @@
-"""Shared fixtures of the reconstruction tests: one small synthetic session (built once per test session)."""
+"""Shared fixtures of the reconstruction tests: one small synthetic session (the suite's demo run renders it) and
+the known-poses pipeline run on it once per test session."""
 
 from __future__ import annotations
 
+import json
 import os
 
 import pytest
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
-SCAN_FRAMES = 40
-
 
 @pytest.fixture(scope="session")
-def sim_session(tmp_path_factory):
-    """A synthetic UMI session: 40 scan frames + 1 demo at 320x240 (~25 s to render on 2 cores)."""
-    import importlib.util
+def sim_session(demo_run):
+    """A synthetic UMI session: 40 scan frames + 1 demo at 320x240, seed 0 (``make_session(out, 0, n_demos=1,
+    scan_frames=40)``). Not rendered again here: it is the session the suite's ``umi-aug demo`` run rendered
+    (tests/conftest.py ``demo_run``: seed 0, ``DEMO_SCAN_FRAMES`` = 40, UMI's 224² policy images), read only. Only
+    the demo's session stage must have worked, not the rest of the demo."""
+    from tests.conftest import DEMO_SCAN_FRAMES
 
-    if importlib.util.find_spec("mujoco") is None:  # not importorskip: MuJoCo must be imported via umi_aug.sim.gl
-        pytest.skip("mujoco (sim extra) not installed")
-    from umi_aug.sim.session import make_session
-
-    out = tmp_path_factory.mktemp("recon_session") / "session"
-    make_session(out, 0, n_demos=1, scan_frames=SCAN_FRAMES, benchmark_frames=0, progress=False)
-    return out
+    session = demo_run.out / "session"
+    if not (session / "session.json").is_file():
+        pytest.fail(f"the suite's `umi-aug demo` run (exit {demo_run.rc}) wrote no session at {session}: "
+                    f"see tests/cli/test_cli.py::test_demo_runs_end_to_end")
+    info = json.loads((session / "session.json").read_text())
+    assert info["seed"] == 0 and info["config"]["scan_frames"] == DEMO_SCAN_FRAMES, info["config"]
+    return session
 
 
 @pytest.fixture(scope="session")

@@ -44,6 +44,10 @@ class SplatStageConfig:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+#: :attr:`ObstacleConfig.fit_iterations`' default (= ``umi_aug.splat.obstacle_gaussians.ObstacleGaussianConfig``'s)
+OBSTACLE_FIT_ITERATIONS = 1000
+
+
 @dataclass(frozen=True)
 class ObstacleConfig:
     """Obstacle augmentation (paper §3.2/§3.3): an asset placed where it blocks the demo's straight approach.
@@ -56,6 +60,7 @@ class ObstacleConfig:
         clearance_m: clearance of the demo's pre-contact tail and post-contact motion from the inflated hull.
         fit_gaussians: fit the obstacle Gaussians to renders of the mesh (else: surface-sampled init only).
         n_gaussians: Gaussians per obstacle asset.
+        fit_iterations: 3DGS steps of each asset's fit (``fit_gaussians``); fewer fit faster and look coarser.
         placement_tries: candidate placements per attempt (:func:`umi_aug.recon.sample_obstacle_placement`).
     """
 
@@ -65,6 +70,7 @@ class ObstacleConfig:
     clearance_m: float = 0.015
     fit_gaussians: bool = True
     n_gaussians: int = 6000
+    fit_iterations: int = OBSTACLE_FIT_ITERATIONS
     placement_tries: int = 2000
 
 
@@ -157,6 +163,9 @@ class AugmentConfig:
             raise AugmentError(f"AugmentConfig.executor = {self.executor!r}; expected 'local' or 'ray'")
         if self.overlay.mask not in ("predefined", "estimated", "auto"):
             raise AugmentError(f"OverlayConfig.mask = {self.overlay.mask!r}; expected predefined/estimated/auto")
+        fi = self.obstacle.fit_iterations
+        if isinstance(fi, bool) or not isinstance(fi, int) or fi < 1:
+            raise AugmentError(f"ObstacleConfig.fit_iterations = {fi!r}; expected a positive int")
         if not self.obstacle.assets and self.mode != "freespace":
             raise AugmentError("ObstacleConfig.assets is empty but the mode needs obstacles")
 
@@ -164,6 +173,13 @@ class AugmentConfig:
     def modes(self) -> tuple[str, ...]:
         """The per-episode modes this config runs, in export order."""
         return modes_of(self.mode)
+
+
+def obstacle_key(obstacle: ObstacleConfig) -> dict[str, Any]:
+    """The obstacle settings as cache keys hash them: every field, except ``fit_iterations`` at its default (so the
+    keys of work folders and exports made before that setting existed stay the same)."""
+    return {f.name: getattr(obstacle, f.name) for f in dataclasses.fields(obstacle)
+            if not (f.name == "fit_iterations" and obstacle.fit_iterations == OBSTACLE_FIT_ITERATIONS)}
 
 
 def modes_of(mode: str) -> tuple[str, ...]:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from umi_aug.augment.config import AugmentConfig, config_hash
+from umi_aug.augment.config import AugmentConfig, config_hash, obstacle_key
 from umi_aug.augment.encode import FrameEncoder, can_encode_ahead, write_encoded
 from umi_aug.augment.executor import map_ordered, usable_cores
 from umi_aug.augment.plan import (MODE_CODES, PlannedEpisode, episode_seed, first_attempt_obstacle_assets,
@@ -98,7 +98,7 @@ def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
     # config, so its version is part of the key too.
     return config_hash("export", 1, OVERLAY_MASK_RULE, fingerprint, cfg.seed, cfg.mode, cfg.n_per_demo, cfg.cone_half_angle_deg,
                        cfg.cone_radius_m, cfg.max_extra_rotation_deg, cfg.image_size, cfg.max_attempts, cfg.splat,
-                       cfg.recon, cfg.obstacle, cfg.overlay, cfg.traj, cfg.render_near_m, cfg.render_far_m,
+                       cfg.recon, obstacle_key(cfg.obstacle), cfg.overlay, cfg.traj, cfg.render_near_m, cfg.render_far_m,
                        cfg.include_original,
                        # the codec's effort changes the stored bytes; None (the library default) keeps the key of
                        # exports made before the setting existed

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from umi_aug.augment.cache import StageResult, build_lock, run_stage
-from umi_aug.augment.config import AugmentConfig
+from umi_aug.augment.config import OBSTACLE_FIT_ITERATIONS, AugmentConfig
 from umi_aug.errors import AugmentError, UmiAugError
 
 if TYPE_CHECKING:
@@ -77,16 +77,19 @@ def obstacle_stage(work: Path, cfg: AugmentConfig, name: str) -> StageResult:
     :meth:`SessionAssets.obstacle_gaussians` does)."""
     def fn(out: Path):
         from umi_aug.splat import write_ply
-        from umi_aug.splat.obstacle_gaussians import obstacle_gaussians
+        from umi_aug.splat.obstacle_gaussians import ObstacleGaussianConfig, obstacle_gaussians
 
         g = obstacle_gaussians(load_obstacle_asset(name), cache_dir=out / "cache", fit=cfg.obstacle.fit_gaussians,
-                               n_gaussians=cfg.obstacle.n_gaussians, seed=cfg.seed)
+                               n_gaussians=cfg.obstacle.n_gaussians, seed=cfg.seed,
+                               config=ObstacleGaussianConfig(fit_iterations=cfg.obstacle.fit_iterations))
         write_ply(out / "scene.ply", g)
         return {"ply": "scene.ply"}, ["scene.ply"], {"asset": name, "gaussians": int(g.n)}
 
     folder = obstacle_stage_folder(name)
     conf = {"asset": name, "fit": cfg.obstacle.fit_gaussians, "n_gaussians": cfg.obstacle.n_gaussians,
             "seed": cfg.seed}
+    if cfg.obstacle.fit_gaussians and cfg.obstacle.fit_iterations != OBSTACLE_FIT_ITERATIONS:
+        conf["fit_iterations"] = cfg.obstacle.fit_iterations  # the default keeps earlier work folders' keys
     return run_stage(folder, work, conf, {}, fn)
 
 

@@ -31,9 +31,14 @@ def reference_sdf(points_world: np.ndarray, cloud: SceneCloud, h: float, sign_ne
     g_out = np.empty((len(q), 3))
     for a in range(0, len(q), chunk):
         qq = q[a:a + chunk]
-        D = np.sqrt(np.sum((qq[:, None, :] - P[None, :, :]) ** 2, axis=-1))  # [m, N] brute force
-        idx = np.argsort(D, axis=1, kind="stable")[:, :k]
+        # [m, N] brute force, one coordinate at a time (the same sums as over a [m, N, 3] difference, ~10x faster)
+        D = np.sqrt((qq[:, 0, None] - P[None, :, 0]) ** 2 + (qq[:, 1, None] - P[None, :, 1]) ** 2
+                    + (qq[:, 2, None] - P[None, :, 2]) ** 2)
+        # the k nearest, closest first (ties by point index; a tie at the k-th distance keeps either point)
+        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(k), (len(qq), 1))
         dk = np.take_along_axis(D, idx, axis=1)
+        order = np.lexsort((idx, dk), axis=1)
+        idx, dk = np.take_along_axis(idx, order, axis=1), np.take_along_axis(dk, order, axis=1)
         s = sign_vote(qq, P[idx], cloud.normals[idx], dk, h)
         near = P[idx[:, 0]]
         v = qq - near

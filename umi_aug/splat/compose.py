@@ -273,7 +273,7 @@ def render_composed(
     t1 = time.perf_counter()
     binning = bin_gaussians(packed, np.arange(V, dtype=np.int64), depth64, W, H, counts)
     t2 = time.perf_counter()
-    out = rasterize_packed(packed, binning, uv64)
+    out = rasterize_packed(packed, binning, uv64, fused=True)
     t3 = time.perf_counter()
     rgb, alpha, ray_depth = compose_background_numpy(out, bg)
     meta = {

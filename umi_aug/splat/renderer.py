@@ -188,8 +188,14 @@ def _pixel_coords(binning: Binning, dtype) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(TILE_SIZE, dtype=dtype), np.arange(TILE_SIZE, dtype=dtype)
 
 
-def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray) -> dict[str, np.ndarray]:
+def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray, fused: bool = False
+                     ) -> dict[str, np.ndarray]:
     """Forward rasterisation in the dtype of ``packed`` (``uv64 [G, 2]``: the means in float64).
+
+    ``fused``: inference only — float32 ``packed`` runs the kernel compiled with fused multiply-adds
+    (``K.raster_fwd_fused_kernel``, ~x1.16; results within rounding of the plain one); float64 (the tests'
+    reference comparisons) always runs the plain kernel. A forward whose backward will run must stay unfused: the
+    backward re-evaluates every pair with the plain kernel's instructions.
 
     Returns ``rgb`` [H, W, 3] (no background), ``depth`` [H, W] (not normalised), ``T`` [H, W], ``last``
     [H, W] int32 and ``evals`` [n_tiles]."""
@@ -204,7 +210,7 @@ def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray) -> 
     }
     xs, ys = _pixel_coords(binning, dt)
     with _parallel(16 * binning.n_isects + H * W, PARALLEL_CHUNK):
-        K.raster_fwd_kernel(
+        (K.raster_fwd_fused_kernel if fused and dt == np.float32 else K.raster_fwd_kernel)(
             packed, uv64, binning.tile_start, binning.sorted_row, W, H, binning.tiles_x, xs, ys,
             K.raster_constants(dt), out["rgb"], out["depth"], out["T"], out["last"], out["evals"],
         )
@@ -378,8 +384,9 @@ def render(
     grad) whenever autograd is on and something requires grad: the projection then runs as
     :class:`umi_aug.splat.project.ProjectGaussians` (numba forward and backward; the torch-autograd reference
     when the pose requires grad or ``projection="torch"``) and the rasteriser as :class:`RasterizeGaussians`.
-    Otherwise (``projection="auto"``) the numba inference projection runs. The working dtype is the scene's
-    (float32: fast path; float64: used by the tests).
+    Otherwise (``projection="auto"``) the numba inference projection and (float32) the fused-multiply-add
+    rasteriser (:func:`rasterize_packed` ``fused=True``) run. The working dtype is the scene's (float32: fast path; float64:
+    used by the tests).
 
     Args:
         gaussians: the scene.
@@ -449,7 +456,7 @@ def render(
             binning = restrict_binning(binning, tiles)
         t2 = time.perf_counter()
         timings["bin"] = t2 - t1
-        out = rasterize_packed(packed, binning, uv64)
+        out = rasterize_packed(packed, binning, uv64, fused=True)
         timings["raster"] = time.perf_counter() - t2
         rgb, alpha, ray_depth = compose_background_numpy(out, bg)
         ids = torch.from_numpy(rows)

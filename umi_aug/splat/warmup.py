@@ -48,7 +48,8 @@ def compile_kernels() -> None:
 
 
 #: Kernels whose cache index files show that the cache is warm (the last ones :func:`compile_kernels` reaches).
-_PROBE_KERNELS = ("project_bwd_kernel", "raster_bwd_kernel", "raster_fwd_kernel", "project_kernel")
+_PROBE_KERNELS = ("project_bwd_kernel", "raster_bwd_kernel", "raster_fwd_kernel", "project_kernel",
+                  "raster_fwd_fused_kernel")
 _child: subprocess.Popen | None = None
 
 

@@ -60,13 +60,17 @@ def _residual_groups(data: ObjectiveData, T_world_cam: np.ndarray) -> dict[str, 
     for k in range(T):
         groups["funnel"].extend(math.sqrt(data.funnel_w[k]) * (t[k] - data.funnel_targets[k]))
     sc = math.sqrt(data.collision_w)
+    S = len(data.sphere_radii)
+    # every sphere centre in the world, then one distance query per field (the fields are evaluated point by point)
+    centres = np.array([[R[k] @ data.sphere_centers[s] + t[k] for s in range(S)] for k in range(T)]).reshape(T * S, 3)
+    d_scene = data.scene_sdf.distance_and_gradient(centres)[0].reshape(T, S)
+    d_obstacle = None if data.obstacle_sdf is None else data.obstacle_sdf.distance_and_gradient(centres)[0].reshape(T, S)
     for k in range(T):
-        for s in range(len(data.sphere_radii)):
-            p = R[k] @ data.sphere_centers[s] + t[k]
-            d = float(data.scene_sdf.distance_and_gradient(p[None])[0][0])
+        for s in range(S):
+            d = float(d_scene[k, s])
             groups["collision"].append(sc * _hinge(data.required_scene[k, s] + data.sphere_radii[s] - d, data.hinge_eta))
-            if data.obstacle_sdf is not None:
-                d = float(data.obstacle_sdf.distance_and_gradient(p[None])[0][0])
+            if d_obstacle is not None:
+                d = float(d_obstacle[k, s])
                 groups["obstacle"].append(sc * _hinge(data.required_obstacle + data.sphere_radii[s] - d, data.hinge_eta))
     groups["render"] = _render_residuals(data, t, R)
     h = float(T - 1)
