@@ -44,6 +44,29 @@ def test_recipes_load_and_bad_keys_are_named(tmp_path):
         st.demos_ready(_cfg(tmp_path, f"demos_dir={bad}"))
 
 
+def test_the_study_trains_on_every_demo(tmp_path):
+    """B3: the study's training command (task=square + the recipe's overrides) holds no episode out — validation
+    never runs in the recipe, and UMI's 5 % hold-out would train `none_n10` on 9 demos."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+
+    from tests.policy.helpers import make_dataset
+    from umi_aug.policy.config import TrainConfig, structured_config
+    from umi_aug.policy.dataset import UmiPolicyDataset
+
+    ConfigStore.instance().store(name="train_schema", node=TrainConfig)
+    ds = make_dataset(tmp_path / "d.zarr.zip", np.random.default_rng(0), n_episodes=10, length=30, size=84)
+    for recipe in ("cpu", "paper"):
+        cfg = st.load_recipe(ROOT / "configs" / "square_study" / f"{recipe}.yaml")
+        cmd = st.train_command(cfg, {"name": "none_n10", "variant": "none", "n": 10})
+        over = [a for a in cmd[2:] if not a.startswith(("hydra.", "task.dataset_path="))]
+        with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+            typed = structured_config(compose("train", overrides=over))
+        assert typed.task.val_ratio == 0.0, recipe
+        train = UmiPolicyDataset(ds, typed.task, "train")
+        assert not train.val_mask.any() and len(train.get_validation_dataset()) == 0, recipe
+
+
 def test_cells_main_grid_then_sweep(tmp_path):
     cells = st.study_cells(_cfg(tmp_path))
     names = [c["name"] for c in cells]
