@@ -7,7 +7,8 @@ from tests.policy.helpers import SIZE
 from umi_aug.errors import PolicyError
 from umi_aug.policy.config import EncoderConfig, TaskConfig, shape_meta
 from umi_aug.policy.encoders import ObsEncoder, timm_clip_to_hf
-from umi_aug.policy.image_aug import CLIP_MEAN, CLIP_STD, color_jitter, hsv_to_rgb, normalize_image, rgb_to_hsv
+from umi_aug.policy.image_aug import (CLIP_MEAN, CLIP_STD, center_crop_resize, color_jitter, crop_side,
+                                      random_crop_resize, hsv_to_rgb, normalize_image, rgb_to_hsv)
 
 TINY_VIT = dict(name="clip_vit", vit_hidden_size=64, vit_layers=2, vit_heads=2, vit_mlp_size=128, vit_patch_size=8)
 
@@ -58,17 +59,44 @@ def test_vit_encoder_shapes_and_train_only_augmentation(caplog):
     enc.eval()
     with torch.no_grad():
         a, b = enc(obs), enc(obs)
-    assert a.shape == (2, enc.output_dim) and torch.equal(a, b)  # eval: no crop, no jitter
-    # eval pre-processing is exactly the CLIP normalisation
+    assert a.shape == (2, enc.output_dim) and torch.equal(a, b)  # eval: deterministic (centre crop, no jitter)
+    # eval pre-processing is exactly the centre crop (same scale as training) + the CLIP normalisation
     pre = enc.preprocess(obs["camera0_rgb"])
     m, s = torch.tensor(CLIP_MEAN)[:, None, None], torch.tensor(CLIP_STD)[:, None, None]
-    assert torch.allclose(pre, (obs["camera0_rgb"] - m) / s)
+    assert torch.allclose(pre, (center_crop_resize(obs["camera0_rgb"], enc.cfg.crop_ratio) - m) / s)
     enc.train()
     with torch.no_grad():
         c = enc(obs)
     assert not torch.allclose(a[:, :128], c[:, :128])  # training: augmented images
     assert torch.equal(a[:, 128:], c[:, 128:])  # low-dim part untouched, sorted keys flattened
     assert torch.equal(a[:, 128:131], obs["robot0_eef_pos"][:, 0])
+
+
+@pytest.mark.parametrize("size,ratio", [(84, 0.95), (224, 0.95), (85, 0.9), (16, 0.5), (84, 1.0)])
+def test_eval_images_have_the_training_scale(size, ratio):
+    """B1: the image evaluation sees is one of the crops training draws (the centred one), so an object has the same
+    apparent size (the distance cue of a wrist camera) in training and evaluation — not the uncropped image, which
+    is 1/ratio smaller than anything the policy was trained on."""
+    g = torch.Generator().manual_seed(size)
+    img = torch.rand(2, 2, 3, size, size, generator=g)
+    ev = center_crop_resize(img, ratio)
+    side = crop_side(size, ratio)
+    off = (size - side) // 2
+    # the same crop drawn by training: a generator whose draws land on the centre offset
+    assert 0 <= off <= size - side
+    found = any(torch.equal(random_crop_resize(img[:1], ratio, torch.Generator().manual_seed(seed)), ev[:1])
+                for seed in range(2000))
+    assert found, "the evaluation crop is not one of the crops training draws"
+    ref = torch.nn.functional.interpolate(img[:, :, :, off: off + side, off: off + side].reshape(-1, 3, side, side),
+                                          size=(size, size), mode="bilinear", align_corners=False, antialias=True)
+    assert torch.equal(ev, ref.reshape(img.shape))
+    assert torch.isfinite(ev).all()
+    if side < size:  # the scale: a centred square of half the image grows by size / side in both
+        sq = torch.zeros(1, 1, 3, size, size)
+        q = size // 4
+        sq[..., q: size - q, q: size - q] = 1.0
+        frac = lambda x: float((x[0, 0, 0] > 0.5).float().mean())  # noqa: E731
+        assert frac(center_crop_resize(sq, ratio)) == pytest.approx(frac(sq) * (size / side) ** 2, rel=0.15)
 
 
 def test_resnet_encoder_and_frozen():
@@ -129,7 +157,7 @@ def test_clip_weights_from_full_clip_model(tmp_path):
     x = torch.rand(2, 2, 3, SIZE, SIZE)
     ref = clip.vision_model(pixel_values=normalize_image(x.reshape(4, 3, SIZE, SIZE), CLIP_MEAN, CLIP_STD))
     for p in (tmp_path / "clip_full", tmp_path / "clip_full" / "model.safetensors"):
-        enc = ObsEncoder(_meta(), EncoderConfig(**TINY_VIT, pretrained_path=str(p))).eval()
+        enc = ObsEncoder(_meta(), EncoderConfig(**TINY_VIT, crop_ratio=1.0, pretrained_path=str(p))).eval()
         with torch.no_grad():
             out = enc({**_obs(), "camera0_rgb": x})
         assert torch.allclose(out[:, :128], ref.pooler_output.reshape(2, 128), atol=1e-5), p

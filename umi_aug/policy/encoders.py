@@ -11,7 +11,9 @@ Backbones:
   GroupNorm when not pretrained), global average pooling; ``resnet_width`` scales it down for CPU.
 
 Fixed against UMI (umi_stack.md §4): images are normalised with the backbone's mean/std (CLIP for the ViT) and
-random crop + colour jitter run only in training mode (UMI: no normalisation; jitter also at inference).
+random crop + colour jitter run only in training mode, and evaluation takes the centred crop of the same side
+resized back (UMI's ``eval_transform``), so apparent sizes match training (UMI: no normalisation; jitter also at
+inference).
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ from torch import nn
 from umi_aug.errors import PolicyError
 from umi_aug.policy.config import EncoderConfig
 from umi_aug.policy.image_aug import (
-    CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD, color_jitter, normalize_image, random_crop_resize,
+    CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD, center_crop_resize, color_jitter, normalize_image,
+    random_crop_resize,
 )
 
 __all__ = ["ObsEncoder", "ClipVitBackbone", "ResNetBackbone", "load_weights_file", "timm_clip_to_hf",
@@ -315,12 +318,13 @@ class ObsEncoder(nn.Module):
         return list(self.backbones.parameters())
 
     def preprocess(self, img: torch.Tensor) -> torch.Tensor:
-        """[B, T, 3, S, S] in [0, 1] → augmented (training only) and normalised images."""
-        if self.training:
-            if self.cfg.crop_ratio < 1.0:
-                img = random_crop_resize(img, self.cfg.crop_ratio, self.generator)
-            if self.cfg.color_jitter:
-                img = color_jitter(img, *self.cfg.color_jitter, generator=self.generator)
+        """[B, T, 3, S, S] in [0, 1] → cropped (random in training, centred in evaluation: the same scale),
+        jittered (training only) and normalised images."""
+        if self.cfg.crop_ratio < 1.0:
+            img = (random_crop_resize(img, self.cfg.crop_ratio, self.generator) if self.training
+                   else center_crop_resize(img, self.cfg.crop_ratio))
+        if self.training and self.cfg.color_jitter:
+            img = color_jitter(img, *self.cfg.color_jitter, generator=self.generator)
         if self._norm is not None:
             img = normalize_image(img, *self._norm)
         return img

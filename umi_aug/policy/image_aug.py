@@ -2,13 +2,15 @@
 
 * :func:`random_crop_resize`: a random ``round(S·ratio)`` square crop per sample, resized back to S with
   antialiased bilinear interpolation (UMI: ``RandomCrop(int(224·0.95))`` + ``Resize(224, antialias=True)``).
+* :func:`center_crop_resize`: the centred crop of the same side, resized back — what evaluation sees (UMI's
+  ``eval_transform``: ``CenterCrop`` + ``Resize``), so an object has the same apparent size as in training.
 * :func:`color_jitter`: torchvision ``ColorJitter(brightness, contrast, saturation, hue)`` semantics — factors
   drawn uniformly from ``[1-b, 1+b]``, ``[1-c, 1+c]``, ``[1-s, 1+s]``, hue shift from ``[-h, h]`` — applied in a
   random order; factors are drawn per sample (UMI's call on a (B·T) batch draws one set for the whole batch).
 * :func:`normalize_image`: CLIP / ImageNet mean-std.
 
-The encoder applies crop and jitter only in training mode; the T frames of one sample share the same crop and
-jitter.
+The encoder applies the random crop and jitter in training mode and the centre crop in evaluation mode; the T
+frames of one sample share the same crop and jitter.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["CLIP_MEAN", "CLIP_STD", "IMAGENET_MEAN", "IMAGENET_STD", "random_crop_resize", "color_jitter",
+__all__ = ["CLIP_MEAN", "CLIP_STD", "IMAGENET_MEAN", "IMAGENET_STD", "random_crop_resize", "center_crop_resize",
+           "crop_side", "color_jitter",
            "normalize_image", "rgb_to_hsv", "hsv_to_rgb"]
 
 #: OpenAI CLIP pre-processing constants (``CLIPImageProcessor`` image_mean / image_std).
@@ -33,8 +36,21 @@ def normalize_image(img: torch.Tensor, mean: tuple[float, ...], std: tuple[float
     return (img - m) / s
 
 
+def crop_side(size: int, ratio: float) -> int:
+    """Side in pixels of the training crop of a ``size``-pixel image (UMI: ``int(size · ratio)``, at least 1)."""
+    return max(1, int(size * ratio))
+
+
+def _resize_back(crops: torch.Tensor, H: int, W: int) -> torch.Tensor:
+    """[B, T, C, h, w] crops → [B, T, C, H, W] (antialiased bilinear, as UMI's ``Resize(antialias=True)``)."""
+    B, T, C, h, w = crops.shape
+    out = F.interpolate(crops.reshape(B * T, C, h, w), size=(H, W), mode="bilinear", align_corners=False,
+                        antialias=True)
+    return out.reshape(B, T, C, H, W)
+
+
 def random_crop_resize(img: torch.Tensor, ratio: float, generator: torch.Generator | None = None) -> torch.Tensor:
-    """Random square crop of side ``round(S·ratio)`` per sample (same for its T frames), resized back.
+    """Random square crop of side :func:`crop_side` per sample (same for its T frames), resized back.
 
     Args:
         img: Tensor,  # [B, T, 3, H, W] in [0, 1]
@@ -42,15 +58,30 @@ def random_crop_resize(img: torch.Tensor, ratio: float, generator: torch.Generat
         Tensor,  # [B, T, 3, H, W]
     """
     B, T, C, H, W = img.shape
-    ch, cw = max(1, int(H * ratio)), max(1, int(W * ratio))
+    ch, cw = crop_side(H, ratio), crop_side(W, ratio)
     if ch == H and cw == W:
         return img
     oy = torch.randint(0, H - ch + 1, (B,), generator=generator, device="cpu")
     ox = torch.randint(0, W - cw + 1, (B,), generator=generator, device="cpu")
     crops = torch.stack([img[b, :, :, int(oy[b]): int(oy[b]) + ch, int(ox[b]): int(ox[b]) + cw] for b in range(B)])
-    out = F.interpolate(crops.reshape(B * T, C, ch, cw), size=(H, W), mode="bilinear", align_corners=False,
-                        antialias=True)
-    return out.reshape(B, T, C, H, W)
+    return _resize_back(crops, H, W)
+
+
+def center_crop_resize(img: torch.Tensor, ratio: float) -> torch.Tensor:
+    """The centred crop of side :func:`crop_side` (offset ``(S − side) // 2``, one of the crops
+    :func:`random_crop_resize` draws), resized back: the evaluation-time twin of the training crop.
+
+    Args:
+        img: Tensor,  # [B, T, 3, H, W] in [0, 1]
+    Returns:
+        Tensor,  # [B, T, 3, H, W]
+    """
+    H, W = img.shape[-2:]
+    ch, cw = crop_side(H, ratio), crop_side(W, ratio)
+    if ch == H and cw == W:
+        return img
+    oy, ox = (H - ch) // 2, (W - cw) // 2
+    return _resize_back(img[..., oy: oy + ch, ox: ox + cw], H, W)
 
 
 def _gray(img: torch.Tensor) -> torch.Tensor:  # [..., 3, H, W] → [..., 1, H, W] (ITU-R 601-2 luma)
