@@ -73,6 +73,37 @@ def test_square_export_every_trajectory_is_feasible_for_the_panda(square_export)
     assert checked == summary.n_augmented
 
 
+def test_square_export_labels_with_commanded_targets(square_export):
+    """issue #29 B2: the export keeps the demos' `action` (commanded targets) for the originals; an augmented
+    episode's new frames get the path's lead targets and its replayed tail the source demo's own targets."""
+    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.geometry import pos_rotvec_to_pose
+    from umi_aug.sim.square.commands import path_command_targets
+
+    demos, out, cfg, summary, root = square_export
+    rec = read_episode_records(out)
+    with ReplayBuffer.open(out) as buf, ReplayBuffer.open(demos / "square_expert_fisheye84.zarr.zip") as src:
+        assert "action" in buf.keys()
+        ends = np.asarray(buf.episode_ends)
+        act = buf["action"][:].astype(np.float64)
+        pose6 = np.concatenate([buf["robot0_eef_pos"][:], buf["robot0_eef_rot_axis_angle"][:]], 1).astype(np.float64)
+        width = buf["robot0_gripper_width"][:, 0].astype(np.float64)
+        src_act = src["action"][:].astype(np.float64)
+        np.testing.assert_array_equal(act[: ends[0]], src_act)  # the original, copied
+        src_splice = int(rec["aug_splice_index"][0])
+        n_checked = 0
+        for e in range(1, len(ends)):
+            rows = np.arange(ends[e - 1], ends[e])
+            s = int(rec["aug_splice_index"][e])
+            want = path_command_targets(pos_rotvec_to_pose(pose6[rows[: s + 1]]), width[rows[: s + 1]])
+            np.testing.assert_allclose(act[rows[: s + 1]], want, atol=2e-6)
+            tail = act[rows[s + 1:]]
+            np.testing.assert_array_equal(tail, src_act[src_splice + 1: src_splice + 1 + len(tail)])
+            n_checked += 1
+    assert n_checked == summary.n_augmented
+
+
 def test_square_export_resamples_or_fails_infeasible_trajectories(square_export, tmp_path):
     """With joint speed limits no trajectory meets, every attempt is rejected by the embodiment check and the
     export records the reason (the rate the study reports); the demo itself is still copied."""

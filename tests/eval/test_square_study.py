@@ -50,12 +50,13 @@ def test_the_study_trains_on_every_demo(tmp_path):
     from hydra import compose, initialize_config_dir
     from hydra.core.config_store import ConfigStore
 
-    from tests.policy.helpers import make_dataset
+    from tests.policy.helpers import make_dataset, with_commanded_targets
     from umi_aug.policy.config import TrainConfig, structured_config
     from umi_aug.policy.dataset import UmiPolicyDataset
 
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
     ds = make_dataset(tmp_path / "d.zarr.zip", np.random.default_rng(0), n_episodes=10, length=30, size=84)
+    ds = with_commanded_targets(ds, tmp_path / "a.zarr.zip", np.random.default_rng(1))[0]  # task=square labels
     for recipe in ("cpu", "paper"):
         cfg = st.load_recipe(ROOT / "configs" / "square_study" / f"{recipe}.yaml")
         cmd = st.train_command(cfg, {"name": "none_n10", "variant": "none", "n": 10})

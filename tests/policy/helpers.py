@@ -81,3 +81,18 @@ def make_tiny_checkpoint(tmp: Path, length: int = 40, obs_down_sample_steps: int
     model.set_normalizer(UmiPolicyDataset(ds, cfg.task, split="all").fit_normalizer())
     return save_checkpoint(tmp / "tiny.ckpt", {"cfg": config_to_dict(cfg), "state_dicts": {"model": model.state_dict()},
                                                "pickles": {"global_step": 0, "epoch": 0, "epoch_done": True}})
+
+
+def with_commanded_targets(src, dst, rng, shape=None, nan_row=None):
+    """A copy of dataset ``src`` plus an ``action`` key: commanded targets near the poses (+ 0 / 0.08 widths)."""
+    buf = ReplayBuffer.open(src, mode="a", load_to_memory=True)
+    n = buf.n_steps
+    pose6 = np.concatenate([buf["robot0_eef_pos"][:], buf["robot0_eef_rot_axis_angle"][:]], 1).astype(np.float64)
+    act = np.concatenate([pose6 + rng.normal(scale=0.01, size=(n, 6)), rng.choice([0.0, 0.08], (n, 1))], 1)
+    if shape is not None:
+        act = np.zeros(shape)
+    if nan_row is not None:
+        act[nan_row, 2] = np.nan
+    buf.data.array("action", act.astype(np.float32))
+    buf.save(dst)
+    return dst, act.astype(np.float32).astype(np.float64), pose6

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.policy.helpers import SIZE, make_dataset, tiny_config
+from tests.policy.helpers import SIZE, make_dataset, tiny_config, with_commanded_targets
 from umi_aug.data import ReplayBuffer
 from umi_aug.errors import PolicyError
 from umi_aug.geometry import pos_rotvec_to_pose, relative_pose
@@ -74,6 +74,80 @@ def test_indices_and_values_match_umi_sampler(dataset_path, tmp_path):
         S = pos_rotvec_to_pose(start6[c])
         np.testing.assert_allclose(sample["obs"]["robot0_eef_rot_axis_angle_wrt_start"].numpy(),
                                    relative_pose(S, T[low])[:, :2, :3].reshape(2, 6), atol=1e-6)
+
+
+def test_action_key_labels_with_the_stored_commanded_targets(dataset_path, tmp_path, rng):
+    """issue #29 B2: with task.action_key the action window holds the stored commanded targets, relative to the
+    same observed current pose (not the future poses)."""
+    path, act, _ = with_commanded_targets(dataset_path, tmp_path / "act.zarr.zip", rng)
+    with ReplayBuffer.open(path) as buf:
+        T = pos_rotvec_to_pose(np.concatenate([buf["robot0_eef_pos"][:], buf["robot0_eef_rot_axis_angle"][:]], 1)
+                               .astype(np.float64))
+    cfg = tiny_config(path, tmp_path, val_ratio=0.0, start_pose_noise=0.0, action_key="action")
+    ds = UmiPolicyDataset(path, cfg.task, "all")
+    plain = UmiPolicyDataset(path, tiny_config(path, tmp_path, val_ratio=0.0, start_pose_noise=0.0).task, "all")
+    for k in (0, 7, len(ds) - 1):
+        c, s, e = (int(v) for v in ds.indices[k])
+        rows = c + 2 * np.arange(16)
+        sample, base = ds[k], plain[k]
+        rel = relative_pose(T[c], pos_rotvec_to_pose(act[rows, :6]))
+        np.testing.assert_allclose(sample["action"][:, :3].numpy(), rel[:, :3, 3], atol=1e-6)
+        np.testing.assert_allclose(sample["action"][:, 3:9].numpy(), rel[:, :2, :3].reshape(16, 6), atol=1e-6)
+        np.testing.assert_allclose(sample["action"][:, 9].numpy(), act[rows, 6], atol=1e-7)
+        for key in sample["obs"]:  # observations are the same as without the key
+            torch.testing.assert_close(sample["obs"][key], base["obs"][key])
+    norm = ds.fit_normalizer()  # fitted on the commanded targets
+    assert norm is not None
+
+
+def test_action_key_errors_name_the_key(dataset_path, tmp_path, rng):
+    cfg = tiny_config(dataset_path, tmp_path, action_key="action")
+    with pytest.raises(PolicyError, match=r"\['action'\].*missing"):
+        UmiPolicyDataset(dataset_path, cfg.task)
+    with ReplayBuffer.open(dataset_path) as buf:
+        n = buf.n_steps
+    bad, _, _ = with_commanded_targets(dataset_path, tmp_path / "bad.zarr.zip", rng, shape=(n, 6))
+    with pytest.raises(PolicyError, match=r"'data/action'.* shape"):
+        UmiPolicyDataset(bad, cfg.task)
+    nan, _, _ = with_commanded_targets(dataset_path, tmp_path / "nan.zarr.zip", rng, nan_row=5)
+    with pytest.raises(PolicyError, match=r"'data/action'.*NaN/Inf.* row 5"):
+        UmiPolicyDataset(nan, cfg.task)
+    cfg.task.n_robots = 2  # 7 columns where two arms need 14
+    with pytest.raises(PolicyError, match=r"robot1_eef_pos"):
+        UmiPolicyDataset(with_commanded_targets(dataset_path, tmp_path / "one.zarr.zip", rng)[0], cfg.task)
+    from umi_aug.policy.config import check_config
+
+    cfg.task.n_robots = 1
+    cfg.task.action_key = "robot0_eef_pos"
+    with pytest.raises(PolicyError, match="task.action_key"):
+        check_config(cfg)
+
+
+def test_batches_from_memory_equal_the_dataloader_path(dataset_path, tmp_path):
+    """issue #29: frames decoded once + batches built at once give exactly the DataLoader's batches (same order,
+    images, low-dim values and start-pose noise), for every epoch and a mid-epoch start."""
+    from umi_aug.policy.workspace import MemoryBatches, make_loader
+
+    cfg = tiny_config(dataset_path, tmp_path, val_ratio=0.25, start_pose_noise=0.05)
+    ref = UmiPolicyDataset(dataset_path, cfg.task, "train")
+    fast = UmiPolicyDataset(dataset_path, cfg.task, "train")
+    assert not fast.frames_in_memory(fast.frames_nbytes() / 2e9)  # over the budget: stays per-sample
+    assert fast.frames_in_memory(1.0) and fast.has_frames_in_memory
+    assert fast.get_validation_dataset().has_frames_in_memory
+    for epoch, start in ((0, 0), (1, 2)):
+        a = list(make_loader(ref, batch_size=8, shuffle=True, seed=3, epoch=epoch, start_batch=start))
+        mb = MemoryBatches(fast, 8, True, 3, epoch, start)
+        b = list(mb)
+        assert len(a) == len(b) == len(mb)
+        for x, y in zip(a, b):
+            assert torch.equal(x["obs"]["camera0_rgb"], y["obs"]["camera0_rgb"])
+            for k in x["obs"]:
+                torch.testing.assert_close(x["obs"][k], y["obs"][k], rtol=0, atol=1e-6)
+            torch.testing.assert_close(x["action"], y["action"], rtol=0, atol=1e-6)
+    with pytest.raises(PolicyError, match="in memory"):
+        ref.batch(np.arange(3))
+    with pytest.raises(IndexError):
+        fast.batch(np.array([len(fast)]))
 
 
 def test_padding_at_episode_start_repeats_like_umi():

@@ -362,7 +362,7 @@ class DatasetAssets(SessionAssets):
         sa._lazy = _PROCESS_CACHE.setdefault(cid, {})
         return sa
 
-    def umi_episode(self, episode) -> dict[str, np.ndarray]:
+    def umi_episode(self, episode, demo_index: int | None = None) -> dict[str, np.ndarray]:
         """UMI keys of an augmented episode with THIS dataset's camera→TCP offset."""
         from umi_aug.data import make_umi_episode
 

@@ -578,7 +578,7 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
                 if res.copy_tail:  # replayed frames: the original compressed chunks
                     r0 = assets.original.get_episode_slice(d).start + int(ep.source_contact_index)
                     rows = np.arange(r0, r0 + planned.n_frames - planned.splice_index)
-                timings["encode_s"] += _append_episode(buf, assets.umi_episode(ep), res.frames, src_img, rows,
+                timings["encode_s"] += _append_episode(buf, assets.umi_episode(ep, d), res.frames, src_img, rows,
                                                        encoded)
                 timings["write_s"] += time.perf_counter() - t0
             tally = dict(attrs.get("attempt_failures", {}))

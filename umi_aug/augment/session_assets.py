@@ -226,8 +226,9 @@ class SessionAssets:
         input knows no robot — a UMI session's hand-held gripper; a simulated robot's input overrides this)."""
         return None
 
-    def umi_episode(self, episode) -> dict[str, np.ndarray]:
-        """UMI replay-buffer keys of an :class:`umi_aug.traj.AugmentedEpisode` (no images)."""
+    def umi_episode(self, episode, demo_index: int | None = None) -> dict[str, np.ndarray]:
+        """UMI replay-buffer keys of an :class:`umi_aug.traj.AugmentedEpisode` of demo ``demo_index`` (no
+        images; sources whose originals carry more keys than UMI's use the demo index to fill them)."""
         return episode.umi_episode()
 
     @property

@@ -39,6 +39,7 @@ from umi_aug.errors import AugmentError, UmiAugError
 from umi_aug.sim.square.scan import ROBOT_BODY_PREFIXES
 
 __all__ = ["SquareInput", "SquareSource", "SquareAssets", "check_square_demos", "prepare_square", "is_square_demos",
+           "square_umi_episode",
            "gt_render_function", "spartn_render_function", "ROBOT_BODY_PREFIXES"]
 
 #: The square env's control rate (frames per second of the demos).
@@ -358,10 +359,8 @@ class _SquareDemoAssets(SessionAssets):
                                upto=int(episode.splice_index), cfg=cfg)
         return None if res.ok else str(res.reason)
 
-    def umi_episode(self, episode) -> dict[str, np.ndarray]:
-        from umi_aug.data import make_umi_episode
-
-        return make_umi_episode(np.asarray(episode.T_world_cam) @ self.square["T_cam_tcp"], episode.gripper_width)
+    def umi_episode(self, episode, demo_index: int | None = None) -> dict[str, np.ndarray]:
+        return square_umi_episode(self, episode, demo_index)
 
 
 _ENVS: dict[str, Any] = {}
@@ -398,10 +397,43 @@ class SquareAssets(SessionAssets):
         h._lazy = _PROCESS_CACHE.setdefault(config_hash(h.cache_id, int(demo_index)), {})
         return h
 
-    def umi_episode(self, episode) -> dict[str, np.ndarray]:
-        from umi_aug.data import make_umi_episode
+    def umi_episode(self, episode, demo_index: int | None = None) -> dict[str, np.ndarray]:
+        return square_umi_episode(self, episode, demo_index)
 
-        return make_umi_episode(np.asarray(episode.T_world_cam) @ self.square["T_cam_tcp"], episode.gripper_width)
+
+def square_umi_episode(assets: SessionAssets, episode, demo_index: int | None) -> dict[str, np.ndarray]:
+    """UMI keys of an augmented square episode (TCP = grip site) + ``action``, the commanded targets the square
+    task labels with (:mod:`umi_aug.sim.square.commands`) when the demos carry them: the new frames' targets lead
+    along the planned path (:func:`~umi_aug.sim.square.commands.path_command_targets`), the replayed frames after
+    the splice keep the source demo's own commanded targets.
+
+    Raises:
+        AugmentError: the demos carry ``action`` but ``demo_index`` is not given, or its episode is too short.
+    """
+    from umi_aug.data import make_umi_episode
+    from umi_aug.data.schema import ACTION_KEY
+    from umi_aug.sim.square.commands import path_command_targets
+
+    T_tcp = np.asarray(episode.T_world_cam) @ assets.square["T_cam_tcp"]
+    out = make_umi_episode(T_tcp, episode.gripper_width)
+    original = assets.original
+    if ACTION_KEY not in original:
+        return out
+    if demo_index is None:
+        raise AugmentError(f"{assets.paths['dataset']}: the square demos carry '{ACTION_KEY}' (commanded targets); "
+                           "an augmented episode's targets need its source demo's index")
+    s, src_s = int(episode.splice_index), int(episode.source_contact_index)
+    sl = original.get_episode_slice(int(demo_index))
+    n_tail = len(T_tcp) - s - 1
+    if sl.start + src_s + 1 + n_tail > sl.stop:
+        raise AugmentError(f"{assets.paths['dataset']}: demo {demo_index} has {sl.stop - sl.start} steps; its "
+                           f"augmented episode replays {n_tail} steps after source step {src_s}")
+    arr = original[ACTION_KEY]
+    act = np.empty((len(T_tcp), arr.shape[1]), dtype=arr.dtype)
+    act[: s + 1] = path_command_targets(T_tcp[: s + 1], np.asarray(episode.gripper_width)[: s + 1])
+    act[s + 1:] = arr[sl.start + src_s + 1: sl.start + src_s + 1 + n_tail]
+    out[ACTION_KEY] = act
+    return out
 
 
 def prepare_square(demos_dir: str | os.PathLike, work_dir: str | os.PathLike, cfg: AugmentConfig,

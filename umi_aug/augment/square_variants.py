@@ -33,7 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from umi_aug.augment.exporter import IMAGE_KEY, RECORD_CHUNK, RECORD_KEYS, _append_episode, read_episode_records
-from umi_aug.data.schema import SAMPLE_STEP_KEY
+from umi_aug.data.schema import ACTION_KEY, SAMPLE_STEP_KEY
 from umi_aug.errors import AugmentError
 
 __all__ = ["VARIANTS", "SpartnConfig", "write_variant", "subset_variant", "action_only_sources", "spartn_perturbation",
@@ -265,6 +265,11 @@ def _spartn_episodes(buf, src, e: int, rows: np.ndarray, splice: int, cfg: Spart
             for kk in ("robot0_demo_start_pose", "robot0_demo_end_pose"):  # a piece of the source demo
                 if kk in low:
                     ep[kk] = low[kk][k]
+            if ACTION_KEY in low:  # commanded targets: the original ones, the perturbed frames' = their poses
+                act = low[ACTION_KEY][k].copy()
+                act[:To, :3] = ep["robot0_eef_pos"][:To]
+                act[:To, 3:6] = ep["robot0_eef_rot_axis_angle"][:To]
+                ep[ACTION_KEY] = act
             frames = np.asarray(render_new(e, {"T_world_cam": Tp[:To], "overlay_rows": k[:To], "source": e,
                                                "rows": rows, "splice": splice}))
             record = {"aug_source_episode": e, "aug_mode": 0, "aug_id": -2, "aug_seed": cfg.seed,

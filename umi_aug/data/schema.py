@@ -15,6 +15,12 @@ EPISODE_ENDS = "episode_ends"
 #: short episode is one sample (its perturbed step), not a window at each of its frames.
 SAMPLE_STEP_KEY = "umi_aug_sample_step"
 
+#: Optional ``data/`` array (umi-aug's; UMI's own dataset ignores it): float (N, 7·R) ABSOLUTE COMMANDED targets,
+#: per arm [pos(3) m, rotvec(3) rad, gripper width m]; row t = the target commanded for step t (row 0: the start
+#: pose). Written where the robot's controller lags its targets (the square env: ``umi_aug.sim.square.commands``);
+#: the policy labels with it when ``task.action_key`` names it.
+ACTION_KEY = "action"
+
 #: ``camera{j}_rgb``: uint8 (N, H, W, 3) RGB images.
 IMAGE_KEY_RE = re.compile(r"^camera\d+_rgb$")
 

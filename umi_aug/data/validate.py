@@ -114,6 +114,11 @@ def _check_data_array(key: str, arr: zarr.Array, n_steps: int, name: str, check_
                             f"{(1,) + tuple(arr.shape[1:])}")
         return
     step_shape = schema.pose_key_shape(key)
+    if key == schema.ACTION_KEY:
+        if arr.ndim != 2 or arr.shape[1] < 7 or arr.shape[1] % 7:
+            raise DatasetError(f"{where} (commanded targets) must have shape (N, 7·R): per arm pos(3), rotvec(3), "
+                               f"gripper width; got {arr.shape}")
+        step_shape = tuple(arr.shape[1:])
     if step_shape is None:
         return
     if tuple(arr.shape[1:]) != step_shape:

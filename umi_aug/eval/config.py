@@ -29,7 +29,7 @@ class EvalSimConfig:
         video_size: video frame size (pixels).
         device: torch device of the policy.
         n_action_steps: executed targets per inference (``null`` = the checkpoint's).
-        gripper_deadband_m: width difference below which the gripper command is kept.
+        gripper_close_below_m: a width target below this closes the gripper, at or above it opens it (m).
         stop_on_success: end a rollout at its first successful step (the score is unchanged).
         replay_dir: folder of episode shards ``seed_*.npz`` (``umi-aug square-demos`` ``shards/``) for ``replay``.
         random_scale: action magnitude of ``policy=random``.
@@ -50,7 +50,7 @@ class EvalSimConfig:
     video_size: int = 224
     device: str = "cpu"
     n_action_steps: int | None = None
-    gripper_deadband_m: float = 0.002
+    gripper_close_below_m: float = 0.04
     stop_on_success: bool = True
     replay_dir: str | None = None
     random_scale: float = 1.0

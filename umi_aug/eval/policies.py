@@ -5,14 +5,13 @@ environment per 20 Hz control step (``[dx, dy, dz] / 0.05 m, axis-angle / 0.5 ra
 ``−1`` open … ``+1`` close; what :meth:`umi_aug.sim.square.env.SquareEnv.step` takes).
 
 * :class:`CheckpointEvalPolicy` — a trained Diffusion Policy (:class:`umi_aug.policy.Policy`). It outputs
-  ABSOLUTE TCP poses (UMI's action representation: position, rotation vector, gripper width). The environment keeps
-  the controller the demonstrations and the 1000 start configurations were recorded with (robosuite OSC_POSE,
-  delta input), so each absolute target is converted to the delta the scripted expert would command to reach it:
-  ``clip((p_target − p) / 0.05)``, ``clip(log(R_target Rᵀ) / 0.5)`` — the same P-law (gain 1) the expert's
-  demonstrations were generated with. Switching the env to absolute OSC (DP's ``abs_action``) would change the
-  controller the configurations and the demonstrations were made with. The gripper width target becomes the sign
-  the Panda gripper integrates: close when the target is narrower than the current width by more than
-  ``gripper_deadband_m``, open when wider, 0 (keep the current command) otherwise.
+  ABSOLUTE targets (position, rotation vector, gripper width). The square policies are trained on the targets the
+  expert COMMANDED (``task.action_key: action``; :mod:`umi_aug.sim.square.commands`), and each is executed the way
+  it was commanded when recorded: :func:`~umi_aug.sim.square.commands.osc_delta_from_target` turns it into the
+  OSC_POSE delta from the current pose — exactly the demo's action when the arm is where the demo's was (issue #29
+  B2: labels of REACHED poses executed this way moved the arm only 0.64–0.66 of the demo's way per chunk). The
+  gripper width target becomes the Panda's command: close below ``gripper_close_below_m`` (half its opening),
+  open otherwise.
 * :class:`ExpertEvalPolicy` — the privileged-state scripted expert (needs no images: nothing is rendered).
 * :class:`ReplayEvalPolicy` — replays recorded actions open loop (control: must succeed from the recording's state).
 * :class:`HoldStillEvalPolicy`, :class:`RandomEvalPolicy` — controls that must never succeed.
@@ -26,9 +25,9 @@ from typing import Any, Protocol, Sequence
 
 import numpy as np
 
-from umi_aug.errors import PolicyError
-from umi_aug.geometry import pos_rotvec_to_pose, so3_log
-from umi_aug.sim.square.expert import POS_SCALE_M, ROT_SCALE_RAD, ExpertConfig, SquareExpert
+from umi_aug.errors import PolicyError, SimError
+from umi_aug.sim.square.commands import GRIPPER_CLOSE_BELOW_M, osc_delta_from_target
+from umi_aug.sim.square.expert import ExpertConfig, SquareExpert
 
 __all__ = ["EvalPolicy", "ExpertEvalPolicy", "HoldStillEvalPolicy", "RandomEvalPolicy", "ReplayEvalPolicy",
            "CheckpointEvalPolicy", "abs_tcp_to_osc_delta", "POLICY_KINDS"]
@@ -60,29 +59,14 @@ class EvalPolicy(Protocol):
         the harness renders only those frames)."""
 
 
-def abs_tcp_to_osc_delta(T_world_tcp: np.ndarray, width: float, target: np.ndarray,
-                         gripper_deadband_m: float = 0.002, pos_gain: float = 1.0, rot_gain: float = 1.0
-                         ) -> np.ndarray:
-    """An absolute TCP target → OSC_POSE delta action of the square env (the expert's P-law).
-
-    Args:
-        T_world_tcp: np.ndarray,  # [4, 4] current TCP pose (grip site, OpenCV camera axes), metres
-        width: current finger separation, metres.
-        target: np.ndarray,  # [7] absolute target: position (m), rotation vector (rad), gripper width (m)
-        gripper_deadband_m: |target − current width| below this keeps the gripper command (0).
-    Returns:
-        action: np.ndarray,  # [7] in [−1, 1]: world position delta / 0.05 m, world axis-angle delta / 0.5 rad,
-                             # gripper sign (+1 close, −1 open, 0 keep)
-    """
-    t = np.asarray(target, dtype=np.float64)
-    if t.shape != (7,) or not np.isfinite(t).all():
-        raise PolicyError(f"abs_tcp_to_osc_delta: target must be finite [7], got {t.shape} {t}")
-    T_t = pos_rotvec_to_pose(t[:6])
-    dp = (T_t[:3, 3] - T_world_tcp[:3, 3]) * pos_gain / POS_SCALE_M
-    dr = so3_log(T_t[:3, :3] @ T_world_tcp[:3, :3].T) * rot_gain / ROT_SCALE_RAD
-    dg = float(width) - float(t[6])  # > 0: target narrower → close
-    g = 0.0 if abs(dg) <= gripper_deadband_m else float(np.sign(dg))
-    return np.concatenate([np.clip(dp, -1, 1), np.clip(dr, -1, 1), [g]])
+def abs_tcp_to_osc_delta(T_world_tcp: np.ndarray, target: np.ndarray,
+                         gripper_close_below_m: float = GRIPPER_CLOSE_BELOW_M) -> np.ndarray:
+    """An absolute TCP target ``[7]`` → the square env's OSC_POSE delta action
+    (:func:`umi_aug.sim.square.commands.osc_delta_from_target`; a bad target raises :class:`PolicyError`)."""
+    try:
+        return osc_delta_from_target(T_world_tcp, target, gripper_close_below_m)
+    except SimError as exc:
+        raise PolicyError(str(exc)) from None
 
 
 class ExpertEvalPolicy:
@@ -178,14 +162,14 @@ class CheckpointEvalPolicy:
     Args:
         policy: a :class:`umi_aug.policy.Policy` (:meth:`from_checkpoint` loads one from a training checkpoint).
         n_action_steps: executed targets per inference (default: the policy's ``policy.n_action_steps``).
-        gripper_deadband_m: see :func:`abs_tcp_to_osc_delta`.
+        gripper_close_below_m: width targets below this close the gripper (:func:`abs_tcp_to_osc_delta`).
     """
 
     name = "checkpoint"
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike, device: str = "cpu", n_action_steps: int | None = None,
-                        gripper_deadband_m: float = 0.002) -> "CheckpointEvalPolicy":
+                        gripper_close_below_m: float = GRIPPER_CLOSE_BELOW_M) -> "CheckpointEvalPolicy":
         """Load a training checkpoint (``umi_aug.policy.checkpoint``; EMA weights when present).
 
         Raises:
@@ -194,12 +178,13 @@ class CheckpointEvalPolicy:
         from umi_aug.policy import Policy
 
         try:
-            return cls(Policy.from_checkpoint(path, device=device), n_action_steps, gripper_deadband_m)
+            return cls(Policy.from_checkpoint(path, device=device), n_action_steps, gripper_close_below_m)
         except PolicyError as exc:
             msg = str(exc)
             raise PolicyError(msg if str(path) in msg else f"checkpoint {path}: {msg}") from exc
 
-    def __init__(self, policy: Any, n_action_steps: int | None = None, gripper_deadband_m: float = 0.002) -> None:
+    def __init__(self, policy: Any, n_action_steps: int | None = None,
+                 gripper_close_below_m: float = GRIPPER_CLOSE_BELOW_M) -> None:
         self.policy = policy
         task = self.policy.task
         if task.n_robots != 1 or task.n_cameras != 1:
@@ -213,7 +198,7 @@ class CheckpointEvalPolicy:
             raise PolicyError(f"n_action_steps={n} must be in [1, {task.action_horizon - 1}] (target 0 is the "
                               f"current pose)")
         self.n_exec = n
-        self.deadband = float(gripper_deadband_m)
+        self.close_below_m = float(gripper_close_below_m)
         self._hist: deque = deque(maxlen=(self.To - 1) * self.down + 1)
         self._queue: list[np.ndarray] = []
         self._gen = None
@@ -259,4 +244,4 @@ class CheckpointEvalPolicy:
             self.n_inferences += 1
             self._queue = [row for row in chunk[1:] for _ in range(self.down)]
         target = self._queue.pop(0)
-        return abs_tcp_to_osc_delta(env.tcp_pose(), env.gripper_width(), target, self.deadband)
+        return abs_tcp_to_osc_delta(env.tcp_pose(), target, self.close_below_m)

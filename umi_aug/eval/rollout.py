@@ -150,7 +150,8 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
     """Run ``policy`` from the flattened MuJoCo ``state`` for up to ``horizon`` control steps.
 
     The environment is first reset (fixed seed 0: clears the gripper's integrated command and the controller, so a
-    rollout never depends on the previous one), then the stored state is restored.
+    rollout never depends on the previous one), then the stored state is restored as an episode start (the
+    controller's null-space posture reference = its arm joints, as when the environment was reset into it).
 
     Args:
         env: :class:`~umi_aug.sim.square.env.SquareEnv` created with ``image_size=None`` (step renders nothing).
@@ -171,7 +172,7 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
     t_start = time.perf_counter()
     tm = {"sim": 0.0, "render": 0.0, "policy": 0.0, "other": 0.0}
     env.reset(seed=0)
-    obs = env.reset_to(state)
+    obs = env.reset_to(state, initial=True)
     policy.reset(env, config, seed)
     nut_rest = probe.nut_pose()
     T_pre = expert_pregrasp_pose(nut_rest, probe.table_z)

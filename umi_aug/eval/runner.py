@@ -129,7 +129,7 @@ def _build_policy(spec: dict[str, Any]):
     if kind == "checkpoint":
         return P.CheckpointEvalPolicy.from_checkpoint(spec["checkpoint"], device=spec["device"],
                                       n_action_steps=spec["n_action_steps"],
-                                      gripper_deadband_m=spec["gripper_deadband_m"])
+                                      gripper_close_below_m=spec["gripper_close_below_m"])
     raise EvalError(f"policy={kind!r}: expected one of {list(P.POLICY_KINDS)}")
 
 
@@ -265,9 +265,9 @@ def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
         if not Path(cfg.checkpoint).is_file():
             raise EvalError(f"checkpoint={cfg.checkpoint!r}: no such file")
         key |= {"checkpoint_sha256": file_sha256(cfg.checkpoint), "n_action_steps": cfg.n_action_steps,
-                "gripper_deadband_m": float(cfg.gripper_deadband_m)}
+                "gripper_close_below_m": float(cfg.gripper_close_below_m)}
         spec |= {"checkpoint": str(Path(cfg.checkpoint).resolve()), "device": cfg.device,
-                 "n_action_steps": cfg.n_action_steps, "gripper_deadband_m": float(cfg.gripper_deadband_m)}
+                 "n_action_steps": cfg.n_action_steps, "gripper_close_below_m": float(cfg.gripper_close_below_m)}
         from umi_aug.eval.policies import CheckpointEvalPolicy
 
         CheckpointEvalPolicy.from_checkpoint(cfg.checkpoint, device=cfg.device,

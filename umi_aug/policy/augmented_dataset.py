@@ -193,10 +193,19 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             self._plans.popitem(last=False)
         return planned
 
-    def _episode_arrays(self, planned) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
-        ep = self.assets.umi_episode(planned.episode)
+    def _episode_arrays(self, planned) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray],
+                                                list[np.ndarray] | None]:
+        """Per arm: poses [N, 6], widths [N, 1], start poses [N, 6] and, with ``task.action_key``, the commanded
+        targets [N, 7] of an augmented episode."""
+        ep = self.assets.umi_episode(planned.episode, planned.demo_index)
         pose6 = np.concatenate([ep["robot0_eef_pos"], ep["robot0_eef_rot_axis_angle"]], axis=1).astype(np.float64)
-        return [pose6], [ep["robot0_gripper_width"].astype(np.float64)], [ep["robot0_demo_start_pose"]]
+        key = self.original.task.action_key
+        if key is not None and key not in ep:
+            raise PolicyError(f"task.action_key = {key!r}: augmented episodes of {self.assets.session_dir} have no "
+                              f"such key (only sources whose demos carry commanded targets, e.g. square demos)")
+        action7 = None if key is None else [np.asarray(ep[key], np.float64)]
+        return ([pose6], [ep["robot0_gripper_width"].astype(np.float64)], [ep["robot0_demo_start_pose"]],
+                action7)
 
     def n_current_steps(self, n_frames: int) -> int:
         """Valid current steps of an episode of ``n_frames`` frames (UMI: the action window must fit)."""
@@ -226,11 +235,11 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             raise PolicyError(f"augmented episode {(demo_index, aug_id, mode)} has {n} frames: step {cur} has no "
                               "full action window")
         t0 = time.perf_counter()
-        pose6, grip, start = self._episode_arrays(planned)
+        pose6, grip, start, action7 = self._episode_arrays(planned)
         c = np.array([cur], np.int64)
         low, a_rows = window_rows(t, c, np.zeros(1, np.int64), np.full(1, n, np.int64))
         lowdim = lowdim_from_rows(t, pose6, grip, start, low, a_rows, c, noise_rng,
-                                  self.original.start_pose_noise if noise_rng is not None else 0.0)
+                                  self.original.start_pose_noise if noise_rng is not None else 0.0, action7)
         rgb_rows, _ = sample_frame_indices(cur, 0, n, t.img_obs_horizon, t.obs_down_sample_steps)
         uniq, inv = np.unique(rgb_rows, return_inverse=True)
         t0 = self._tick("lowdim", t0)
@@ -280,6 +289,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             return self.original.fit_normalizer()
         extra = copy.copy(self.original)
         pose6, grip, start = list(extra.pose6[0:1]), list(extra.gripper[0:1]), list(extra.start_pose[0:1])
+        act = list(extra.action7[0:1]) if extra.action7 is not None else None
         ends, rows = [int(e) for e in extra.episode_ends], []
         base = len(pose6[0])
         for k in range(n_episodes):
@@ -287,10 +297,12 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             planned = self.planned(demo, aug_id, mode)
             if planned is None:
                 continue
-            p, g, s = self._episode_arrays(planned)
+            p, g, s, a = self._episode_arrays(planned)
             pose6.append(p[0])
             grip.append(g[0])
             start.append(s[0])
+            if act is not None:
+                act.append(a[0])
             base += len(p[0])
             ends.append(base)
             rows.append(len(ends) - 1)
@@ -298,6 +310,8 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             return self.original.fit_normalizer()
         extra.pose6 = [np.concatenate(pose6)]
         extra.gripper = [np.concatenate(grip)]
+        if act is not None:
+            extra.action7 = [np.concatenate(act)]
         if self.original.task.use_wrt_start:
             extra.start_pose = [np.concatenate(start)]
         extra.episode_ends = np.asarray(ends, np.int64)

@@ -10,9 +10,11 @@ reads these dataclasses, never raw dicts.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, List, Optional
 
+from umi_aug.data.schema import is_image_key
 from umi_aug.errors import PolicyError
 
 #: Names accepted by ``aug.name``: no augmentation, or on-the-fly augmentation in these modes.
@@ -55,6 +57,11 @@ class TaskConfig:
     action_padding: bool = False
     #: drop proprioception from the policy input (UMI's ``ignore_by_policy``)
     ignore_proprioception: bool = False
+    #: where the action labels come from: None = the future TCP poses and gripper widths (UMI's rule: the arm's
+    #: controller tracks poses); a replay-buffer key (``action``) = stored ABSOLUTE COMMANDED targets
+    #: [N, 7·R] (per arm pos m, rotvec rad, gripper width m; row t = the target commanded for step t, row 0 the
+    #: start pose) — for robots whose controller lags its targets (the square env's OSC: issue #29 B2)
+    action_key: Optional[str] = None
 
 
 @dataclass
@@ -174,6 +181,9 @@ class DataloaderConfig:
     val_batch_size: int = 64
     shuffle: bool = True
     persistent_workers: bool = True
+    #: decode every camera frame ONCE into RAM (uint8) when they take at most this many GB, then build batches
+    #: by indexing (no per-sample JPEG-XL decode; issue #29); 0 = decode the frames each sample needs (reference)
+    frames_in_memory_gb: float = 4.0
 
 
 @dataclass
@@ -252,6 +262,11 @@ def check_config(cfg: TrainConfig) -> None:
             bad(f"task.{name}", getattr(t, name), "expected 'relative' or 'abs'")
     if not 0.0 <= t.val_ratio < 1.0:
         bad("task.val_ratio", t.val_ratio, "must be in [0, 1)")
+    if t.action_key is not None and (not t.action_key or is_image_key(t.action_key) or
+                                     any(t.action_key == f"robot{i}_{k}" for i in range(t.n_robots)
+                                         for k in ("eef_pos", "eef_rot_axis_angle", "gripper_width"))):
+        bad("task.action_key", t.action_key, "expected null (labels = future TCP poses) or the replay-buffer key "
+            "of stored absolute commanded targets, e.g. 'action'")
     if t.make_if_missing not in MAKE_IF_MISSING:
         bad("task.make_if_missing", t.make_if_missing, f"expected one of {list(MAKE_IF_MISSING)}")
     if p.encoder.name not in ENCODER_NAMES:
@@ -273,6 +288,8 @@ def check_config(cfg: TrainConfig) -> None:
     if p.noise_scheduler.prediction_type != "epsilon":
         bad("policy.noise_scheduler.prediction_type", p.noise_scheduler.prediction_type,
             "only 'epsilon' prediction is supported")
+    if not (cfg.dataloader.frames_in_memory_gb >= 0.0 and math.isfinite(cfg.dataloader.frames_in_memory_gb)):
+        bad("dataloader.frames_in_memory_gb", cfg.dataloader.frames_in_memory_gb, "must be a finite number >= 0")
     if cfg.device.amp not in ("none", "bf16"):
         bad("device.amp", cfg.device.amp, "expected 'none' or 'bf16'")
     if cfg.dataloader.batch_size < 1:

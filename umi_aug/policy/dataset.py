@@ -8,7 +8,9 @@ Per sample index (a "current" step ``c`` of episode ``[s, e)``), with down-sampl
   the pose at ``c``: ``inv(T_c) @ T_t``, as pos + rot6d), gripper width as is; ``*_rot_axis_angle_wrt_start`` =
   rot6d of ``inv(T_start + noise) @ T_t`` (UMI adds N(0, 0.05) to the 6-vector; here only in the training split).
 * action: rows ``c, c+d, …, c+(H-1)d`` of [pos, rotvec, gripper] → relative pos + rot6d + gripper (H, 10·R).
-  Windows that cross the episode end are skipped unless ``action_padding`` (then the last row repeats).
+  Windows that cross the episode end are skipped unless ``action_padding`` (then the last row repeats). The rows
+  are the TCP poses and widths (UMI), or, with ``task.action_key``, the stored absolute commanded targets
+  (``[N, 7·R]``), made relative to the same observed pose ``c``.
 
 Episodes are split into train / validation by UMI's ``get_val_mask`` (same seed → same episodes as UMI). The
 normaliser is fitted from the low-dim arrays only (no image is decoded). The zarr store is opened lazily once per
@@ -33,7 +35,8 @@ from umi_aug.policy.config import TaskConfig, shape_meta
 from umi_aug.policy.normalizer import LinearNormalizer, identity_params, range_params
 from umi_aug.policy.pose_repr import abs_actions_to_model, obs_pose_to_model, wrt_start_rot6d
 
-__all__ = ["UmiPolicyDataset", "get_val_mask", "sample_frame_indices", "window_rows", "lowdim_from_rows", "to_sample"]
+__all__ = ["UmiPolicyDataset", "get_val_mask", "sample_frame_indices", "frame_rows", "window_rows", "lowdim_from_rows",
+           "to_sample", "to_batch"]
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +88,15 @@ def sample_frame_indices(cur: int, start: int, end: int, horizon: int, down_samp
     return rgb, low
 
 
+def frame_rows(task: TaskConfig, cur: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """:func:`sample_frame_indices`' image rows for many samples at once: [N, img_obs_horizon] int64 for current
+    rows ``cur`` [N] of episodes starting at ``start`` [N] (frames before the start repeat the earliest valid)."""
+    h, d = task.img_obs_horizon, task.obs_down_sample_steps
+    k = np.arange(h - 1, -1, -1, dtype=np.int64) * d
+    n_valid = np.minimum(h, (cur - start) // d + 1)
+    return np.maximum(cur[:, None] - k[None], (cur - (n_valid - 1) * d)[:, None])
+
+
 def window_rows(task: TaskConfig, cur: np.ndarray, start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """UMI's low-dim observation rows [N, h] and action rows [N, H] for current rows ``cur`` [N] of episodes
     ``[start, end)`` (int64 arrays of the same shape; rows index the arrays the episode lives in)."""
@@ -98,11 +110,12 @@ def window_rows(task: TaskConfig, cur: np.ndarray, start: np.ndarray, end: np.nd
 
 def lowdim_from_rows(task: TaskConfig, pose6: list[np.ndarray], gripper: list[np.ndarray],
                      start_pose: list[np.ndarray], low: np.ndarray, a_rows: np.ndarray, cur: np.ndarray,
-                     noise_rng: np.random.Generator | None = None, start_pose_noise: float = 0.0
-                     ) -> dict[str, np.ndarray]:
+                     noise_rng: np.random.Generator | None = None, start_pose_noise: float = 0.0,
+                     action7: list[np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Low-dim observations and actions (float64) in the policy representation, per robot ``i`` from
     ``pose6[i]`` [M, 6] (pos + rotvec, metres/radians), ``gripper[i]`` [M, 1] (metres) and, with ``wrt_start``,
-    ``start_pose[i]`` [M, 6]; ``low`` [N, h], ``a_rows`` [N, H], ``cur`` [N] index those rows."""
+    ``start_pose[i]`` [M, 6]; ``low`` [N, h], ``a_rows`` [N, H], ``cur`` [N] index those rows. ``action7[i]``
+    [M, 7]: absolute commanded targets to label with instead of the poses (``task.action_key``)."""
     out: dict[str, np.ndarray] = {}
     actions = []
     for i in range(task.n_robots):
@@ -117,7 +130,8 @@ def lowdim_from_rows(task: TaskConfig, pose6: list[np.ndarray], gripper: list[np
             if noise_rng is not None and start_pose_noise > 0:
                 sp += noise_rng.normal(scale=start_pose_noise, size=sp.shape)
             out[f"robot{i}_eef_rot_axis_angle_wrt_start"] = wrt_start_rot6d(pos, rot, sp)
-        a7 = np.concatenate([p6[a_rows], gripper[i][a_rows]], axis=-1)
+        a7 = (action7[i][a_rows] if action7 is not None
+              else np.concatenate([p6[a_rows], gripper[i][a_rows]], axis=-1))
         # UMI's dataset converts actions with obs_pose_repr but deployment undoes them with action_pose_repr;
         # both are "relative" by default — here action_pose_repr is used on both sides
         actions.append(abs_actions_to_model(a7, T_cur, task.action_pose_repr))
@@ -131,6 +145,17 @@ def to_sample(frames: dict[str, np.ndarray], lowdim: dict[str, np.ndarray], lowd
     obs: dict[str, torch.Tensor] = {}
     for key, f in frames.items():
         obs[key] = torch.from_numpy(np.ascontiguousarray(f.transpose(0, 3, 1, 2))).float().div_(255.0)
+    for key in lowdim_keys:
+        obs[key] = torch.from_numpy(lowdim[key].astype(np.float32))
+    return {"obs": obs, "action": torch.from_numpy(lowdim["action"].astype(np.float32))}
+
+
+def to_batch(frames: dict[str, np.ndarray], lowdim: dict[str, np.ndarray], lowdim_keys: list[str]) -> dict[str, Any]:
+    """A training batch, as the DataLoader collates :func:`to_sample`'s samples: ``frames[key]`` uint8
+    [B, h, H, W, 3] → float32 [B, h, 3, H, W] in [0, 1]; ``lowdim`` arrays [B, ...] (incl. ``action``) → float32."""
+    obs: dict[str, torch.Tensor] = {}
+    for key, f in frames.items():
+        obs[key] = torch.from_numpy(f).permute(0, 1, 4, 2, 3).float().div_(255.0).contiguous()
     for key in lowdim_keys:
         obs[key] = torch.from_numpy(lowdim[key].astype(np.float32))
     return {"obs": obs, "action": torch.from_numpy(lowdim["action"].astype(np.float32))}
@@ -178,6 +203,7 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
         self._pid: int | None = None
         self._rng: np.random.Generator | None = None
         self._rng_key: tuple[int, int] | None = None
+        self._frames: dict[str, np.ndarray] | None = None  # every frame decoded once (frames_in_memory)
 
     # ------------------------------------------------------------------ setup
     def _load_lowdim(self, buf) -> None:
@@ -188,6 +214,8 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
             if self.task.use_wrt_start:
                 need.append(f"robot{i}_demo_start_pose")
         need += self.rgb_keys
+        if self.task.action_key is not None:
+            need.append(self.task.action_key)
         missing = [k for k in need if k not in keys]
         if missing:
             raise PolicyError(f"{self.path}: keys {missing} needed by task {self.task.name!r} "
@@ -199,6 +227,7 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
             if shp != (S, S, 3):
                 raise PolicyError(f"{self.path}: key 'data/{k}' holds {shp} images; task.image_size={S} needs "
                                   f"({S}, {S}, 3)")
+        self.action7 = self._load_actions(buf) if self.task.action_key is not None else None
         self.episode_ends = buf.episode_ends
         if len(self.episode_ends) == 0:
             raise PolicyError(f"{self.path}: the replay buffer has no episodes")
@@ -211,6 +240,18 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
             self.gripper.append(np.asarray(buf[f"robot{i}_gripper_width"][:], dtype=np.float64))
             if self.task.use_wrt_start:
                 self.start_pose.append(np.asarray(buf[f"robot{i}_demo_start_pose"][:], dtype=np.float64))
+
+    def _load_actions(self, buf) -> list[np.ndarray]:
+        """Per arm [N, 7] absolute commanded targets from ``data/<task.action_key>`` (checked: shape, finite)."""
+        key, R = self.task.action_key, self.task.n_robots
+        arr = np.asarray(buf[key][:], dtype=np.float64)
+        if arr.shape != (buf.n_steps, 7 * R):
+            raise PolicyError(f"{self.path}: key 'data/{key}' (task.action_key) has shape {arr.shape}; expected "
+                              f"({buf.n_steps}, {7 * R}): per arm [pos(3) m, rotvec(3) rad, gripper width m]")
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        if bad.size:
+            raise PolicyError(f"{self.path}: key 'data/{key}' (task.action_key) holds NaN/Inf at row {int(bad[0])}")
+        return [arr[:, 7 * i: 7 * (i + 1)] for i in range(R)]
 
     def _build_indices(self) -> None:
         t = self.task
@@ -260,7 +301,7 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
         """Low-dim observations and actions of samples ``idx`` [N] (float64, no images)."""
         low, a_rows, cur = self._indices(np.asarray(idx, dtype=np.int64))
         return lowdim_from_rows(self.task, self.pose6, self.gripper, self.start_pose, low, a_rows, cur,
-                                noise_rng, self.start_pose_noise)
+                                noise_rng, self.start_pose_noise, self.action7)
 
     def _noise_rng(self) -> np.random.Generator:
         key = (os.getpid(), torch.initial_seed())
@@ -276,8 +317,61 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
             self._pid = os.getpid()
         return self._buf
 
+    @property
+    def has_frames_in_memory(self) -> bool:
+        return self._frames is not None
+
+    def frames_nbytes(self) -> int:
+        """Bytes of every camera frame of the buffer decoded (uint8)."""
+        S = self.task.image_size
+        return int(len(self.rgb_keys) * int(self.episode_ends[-1]) * S * S * 3)
+
+    def frames_in_memory(self, max_gb: float, progress: bool = False) -> bool:
+        """Decode every camera frame ONCE into RAM (uint8, one array per key) when they take at most ``max_gb``
+        GB; samples and :meth:`batch` then index it instead of decoding JPEG-XL chunks (issue #29: two thirds of a
+        CPU training step went to per-sample decoding). Returns whether the frames are (now) in memory. The
+        validation split made afterwards shares the arrays; DataLoader workers get a copy each (use 0 workers)."""
+        if self._frames is not None:
+            return True
+        if max_gb <= 0 or self.frames_nbytes() > max_gb * 1e9:
+            return False
+        from tqdm.auto import tqdm
+
+        frames: dict[str, np.ndarray] = {}
+        buf = self._buffer()
+        n = int(self.episode_ends[-1])
+        step = 256
+        with tqdm(total=n * len(self.rgb_keys), desc="decoding frames into memory", unit="frame",
+                  disable=not progress, mininterval=1.0) as bar:
+            for key in self.rgb_keys:
+                arr = buf[key]
+                out = np.empty((n,) + tuple(arr.shape[1:]), np.uint8)
+                for s in range(0, n, step):
+                    out[s: s + step] = arr[s: min(n, s + step)]
+                    bar.update(min(n, s + step) - s)
+                frames[key] = out
+        self._frames = frames
+        return True
+
+    def batch(self, idx: np.ndarray, noise_rng: np.random.Generator | None = None) -> dict[str, Any]:
+        """The collated batch of samples ``idx`` [B] built at once (frames must be in memory:
+        :meth:`frames_in_memory`): the same tensors as a DataLoader over ``self[i]`` (tested), with the start-pose
+        noise drawn from ``noise_rng`` (default: this process's generator, as ``__getitem__``)."""
+        if self._frames is None:
+            raise PolicyError("UmiPolicyDataset.batch needs the frames in memory (call frames_in_memory first)")
+        idx = np.asarray(idx, dtype=np.int64)
+        if idx.size and (idx.min() < 0 or idx.max() >= len(self)):
+            raise IndexError(f"sample indices {idx.min()}..{idx.max()} out of range for {len(self)} samples")
+        low = self.lowdim_batch(idx, self._noise_rng() if noise_rng is None else noise_rng)
+        cur, start, _ = self.indices[idx].T
+        rows = frame_rows(self.task, cur, start)
+        return to_batch({key: self._frames[key][rows] for key in self.rgb_keys}, low, self.lowdim_keys)
+
     def read_frames(self, key: str, rows: np.ndarray) -> np.ndarray:
-        """uint8 [len(rows), H, W, 3] frames of ``camera{j}_rgb``; each distinct frame is decoded once."""
+        """uint8 [len(rows), H, W, 3] frames of ``camera{j}_rgb``; each distinct frame is decoded once (or read
+        from memory after :meth:`frames_in_memory`)."""
+        if self._frames is not None:
+            return self._frames[key][np.asarray(rows, dtype=np.int64)]
         uniq, inv = np.unique(rows, return_inverse=True)
         arr = self._buffer()[key]
         if len(uniq) > 1 and np.all(np.diff(uniq) == uniq[1] - uniq[0]):

@@ -39,7 +39,7 @@ from umi_aug.policy.ema import EMA
 from umi_aug.runtime import configure_threads
 
 __all__ = ["TrainWorkspace", "resolve_dataset_path", "seed_everything", "build_optimizer", "build_lr_scheduler",
-           "iter_jsonl", "make_loader", "loader_context", "EpochSampler", "worker_init"]
+           "iter_jsonl", "make_loader", "loader_context", "EpochSampler", "MemoryBatches", "worker_init"]
 
 log = logging.getLogger(__name__)
 
@@ -114,6 +114,26 @@ class EpochSampler(torch.utils.data.Sampler):
         g.manual_seed(epoch_seed(self.seed, self.epoch))
         torch.empty((), dtype=torch.int64).random_(generator=g)  # the loader's base-seed draw
         return iter(torch.randperm(self.n, generator=g).tolist()[self.start:])
+
+
+class MemoryBatches:
+    """The batches of a dataset whose frames are in memory (:meth:`UmiPolicyDataset.frames_in_memory`), in the
+    order the DataLoader path gives (:class:`EpochSampler`), each built at once by :meth:`UmiPolicyDataset.batch`
+    instead of per sample + collate (same tensors: tested)."""
+
+    def __init__(self, ds: UmiPolicyDataset, batch_size: int, shuffle: bool, seed: int, epoch: int = 0,
+                 start_batch: int = 0) -> None:
+        self.ds, self.batch_size = ds, int(batch_size)
+        self.sampler = EpochSampler(len(ds), seed, shuffle)
+        self.sampler.set_epoch(epoch, start_batch * self.batch_size)
+
+    def __len__(self) -> int:
+        return -(-len(self.sampler) // self.batch_size)
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        order = np.fromiter(iter(self.sampler), dtype=np.int64)
+        for i in range(0, len(order), self.batch_size):
+            yield self.ds.batch(order[i: i + self.batch_size])
 
 
 def worker_init(worker_id: int) -> None:
@@ -296,6 +316,14 @@ class TrainWorkspace:
                               f"((action_horizon-1)·down_sample+1 = "
                               f"{(self.cfg.task.action_horizon - 1) * self.cfg.task.obs_down_sample_steps + 1} "
                               "frames); lower task.obs_down_sample_steps or set task.action_padding=true")
+        if self.cfg.device.num_workers == 0:  # workers would each get a copy: they decode per sample instead
+            gb = self.cfg.dataloader.frames_in_memory_gb
+            if train.frames_in_memory(gb, progress=self.cfg.training.progress_bar):
+                log.info("frames: %d decoded once into memory (%.0f MB)", int(train.episode_ends[-1]),
+                         train.frames_nbytes() / 1e6)
+            elif gb > 0:
+                log.info("frames: decoded per sample (%.1f GB decoded > dataloader.frames_in_memory_gb = %s)",
+                         train.frames_nbytes() / 1e9, gb)
         val = train.get_validation_dataset()
         if self.cfg.aug.name == "none":
             return train, val
@@ -307,6 +335,9 @@ class TrainWorkspace:
         once per dataset (:func:`make_loader`: persistent workers, epoch-seeded sampler) and re-used, so workers
         start (import, scene load, kernel cache load) once per run; otherwise a new one per call (the reference)."""
         c, d = self.cfg.dataloader, self.cfg.device
+        if isinstance(ds, UmiPolicyDataset) and ds.has_frames_in_memory and d.num_workers == 0:
+            return MemoryBatches(ds, c.batch_size if train else c.val_batch_size, c.shuffle and train,
+                                 self.cfg.training.seed, epoch, start_batch)
         kw = dict(batch_size=c.batch_size if train else c.val_batch_size, shuffle=c.shuffle and train,
                   seed=self.cfg.training.seed, num_workers=d.num_workers,
                   pin_memory=d.pin_memory and torch.cuda.is_available(), persistent=c.persistent_workers,

@@ -152,8 +152,15 @@ class SquareEnv:
         self._fix_model()
         return self.observation()
 
-    def reset_to(self, states: np.ndarray, model_xml: str | None = None) -> dict[str, np.ndarray]:
-        """Set the flattened MuJoCo state (robomimic ``states`` row); with ``model_xml`` load that model first."""
+    def reset_to(self, states: np.ndarray, model_xml: str | None = None, initial: bool = False
+                 ) -> dict[str, np.ndarray]:
+        """Set the flattened MuJoCo state (robomimic ``states`` row); with ``model_xml`` load that model first.
+
+        ``initial``: the state STARTS an episode (a start configuration, a demo's first state). robosuite's reset
+        sets the OSC controller's null-space posture reference to the arm joints it starts from and its goal to the
+        start pose; restoring a state does not, so without this the arm keeps those of the last reset and moves
+        differently from an episode started at this state (issue #29: a demo replayed from its first state
+        diverged at step 1)."""
         state: dict[str, Any] = {"states": np.asarray(states, dtype=np.float64)}
         if model_xml is not None:
             state["model"] = model_xml
@@ -161,6 +168,11 @@ class SquareEnv:
         if model_xml is not None:
             self._xml = model_xml
         self._fix_model()
+        if initial:  # what robosuite's reset leaves in the controller: posture reference and goal = this state
+            ctrl = self.rs.robots[0].controller
+            ctrl.update_initial_joints(np.array(self.data.qpos[self.rs.robots[0]._ref_joint_pos_indexes]))
+            ctrl.update(force=True)
+            ctrl.reset_goal()
         return self.observation()
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, dict]:

@@ -15,15 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from umi_aug.geometry import so3_log
+from umi_aug.sim.square.commands import POS_SCALE_M, ROT_SCALE_RAD
 from umi_aug.sim.square.env import GRIP_SITE, NUT_BODY, PEG_BODY, SquareEnv
 
 __all__ = ["ExpertConfig", "SquareExpert", "PHASES", "nut_yaw_error", "expert_pregrasp_pose", "pregrasp_error",
            "PREGRASP_POS_TOL_M", "PREGRASP_ROT_TOL_DEG"]
 
 PHASES: tuple[str, ...] = ("approach", "descend", "grasp", "lift", "align", "insert", "release", "retreat", "done")
-#: OSC_POSE output_max of robomimic's square env_meta: metres / radians per unit action.
-POS_SCALE_M: float = 0.05
-ROT_SCALE_RAD: float = 0.5
 
 
 @dataclass(frozen=True)

@@ -98,7 +98,7 @@ def rollout_expert(
     if not render:
         env.image_size = None
     try:
-        obs = env.reset(seed=seed) if states0 is None else env.reset_to(states0)
+        obs = env.reset(seed=seed) if states0 is None else env.reset_to(states0, initial=True)
         expert = SquareExpert(expert_cfg)
         rec = _Recorder(render)
         success = False

@@ -17,8 +17,10 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from umi_aug.data.schema import ACTION_KEY
 from umi_aug.errors import SimError
 from umi_aug.io_utils import atomic_path
+from umi_aug.sim.square.commands import commanded_targets
 from umi_aug.sim.square.env import FISHEYE_KEY
 from umi_aug.sim.square.rollout import Episode
 
@@ -63,6 +65,8 @@ def write_umi_zarr(
     intrinsics: dict[str, Any] | None = None,
 ) -> Path:
     """Write ``episodes`` as a UMI replay buffer (``*.zarr.zip`` or a zarr directory); needs rendered images.
+    Besides UMI's keys it holds ``action``: the absolute targets the episodes' OSC actions commanded
+    (:func:`umi_aug.sim.square.commands.commanded_targets`; the square task's labels).
 
     Args:
         T_cam_tcp: np.ndarray,  # [4, 4] camera→TCP offset of the sim robot (stored as a root attribute)
@@ -74,7 +78,9 @@ def write_umi_zarr(
     for ep in episodes:
         if FISHEYE_KEY not in ep.obs:
             raise SimError(f"write_umi_zarr({path}): episode (seed {ep.seed}) has no '{FISHEYE_KEY}' images")
-        rb.add_episode(make_umi_episode(ep.T_world_tcp, ep.gripper_width, {0: ep.obs[FISHEYE_KEY]}))
+        arrays = make_umi_episode(ep.T_world_tcp, ep.gripper_width, {0: ep.obs[FISHEYE_KEY]})
+        arrays[ACTION_KEY] = commanded_targets(ep.T_world_tcp, ep.actions).astype(np.float32)
+        rb.add_episode(arrays)
     rb.root.attrs["T_cam_tcp"] = np.asarray(T_cam_tcp, dtype=np.float64).tolist()
     if intrinsics is not None:
         rb.root.attrs["camera0_intrinsics"] = intrinsics
