@@ -6,6 +6,11 @@ Run: ``OMP_NUM_THREADS=2 python benchmarks/policy.py [--dataset PATH] [--device 
   JPEG-XL images (default: a synthetic one written to a temporary folder: 4 episodes × 120 frames); samples/s
   of :class:`UmiPolicyDataset` through a DataLoader (batch ``--batch``, ``--workers`` workers), including image
   decoding, relative-pose conversion and collation.
+* Training loop (``--loop DATASET``, issue #29): ``TrainWorkspace.run`` end to end on a square demo dataset (84²,
+  commanded-target labels) at batch 64 for ``policy=small`` on this machine's threads — steps/s of the whole loop
+  (data, augmentation, forward, backward, AdamW, EMA), measured between step 5 and the last, for today's path
+  (frames decoded per sample; the sector-by-sector HSV of the colour jitter) and the fast one (frames decoded once
+  into memory; the sector-free HSV), in one run, alternating.
 * Training: one optimiser step (forward with train-time augmentation, backward, AdamW, EMA) at batch ``--batch``
   on a pre-loaded batch, for ``policy=small`` (ResNet-18 layout at 1/4 width, U-Net 64/128/256),
   ``policy=resnet18`` and ``policy=clip_vit_b16`` (the paper's: ViT-B/16 + U-Net 256/512/1024). ``--device cuda``
@@ -131,6 +136,116 @@ def bench_train(path: Path, name: str, batch: int, steps: int, device: str, amp:
             "samples_per_s": batch / dt, "predict_action_s": t_inf}
 
 
+LOOP_VARIANTS: dict[str, dict] = {
+    "before: per-sample decode, NCHW, ref. HSV": {"frames_in_memory_gb": 0.0, "hsv": "reference",
+                                                  "channels_last": False, "amp": "none"},
+    "+ frames decoded once into memory": {"frames_in_memory_gb": 4.0, "hsv": "reference", "channels_last": False,
+                                          "amp": "none"},
+    "+ sector-free HSV (colour jitter)": {"frames_in_memory_gb": 4.0, "hsv": "fast", "channels_last": False,
+                                          "amp": "none"},
+    "+ channels-last ResNet (after, fp32)": {"frames_in_memory_gb": 4.0, "hsv": "fast", "channels_last": True,
+                                             "amp": "none"},
+    "+ bf16 autocast (after, device.amp=bf16)": {"frames_in_memory_gb": 4.0, "hsv": "fast", "channels_last": True,
+                                                 "amp": "bf16"},
+}
+
+
+def bench_loop(path: Path, variant: dict, steps: int, batch: int, out: Path, extra: dict | None = None) -> dict:
+    """``TrainWorkspace.run`` for ``steps`` steps; steps/s between step 5 and the last (from ``logs.jsonl``)."""
+    import json
+
+    import umi_aug.policy.image_aug as image_aug
+    from umi_aug.policy.config import structured_config
+    from umi_aug.policy.workspace import TrainWorkspace
+
+    over = {"output_dir": str(out), "task": {"name": "square", "dataset_path": str(path), "image_size": 84,
+                                              "obs_down_sample_steps": 1, "val_ratio": 0.0, "action_key": "action"},
+            "policy": {"name": "small", "encoder": {"name": "resnet", "resnet_width": 16, "image_norm": "imagenet",
+                                                    "channels_last": variant["channels_last"]},
+                       "down_dims": [64, 128, 256], "diffusion_step_embed_dim": 64, "num_inference_steps": 8},
+            "device": {"name": "cpu", "device": "cpu", "num_workers": 0, "amp": variant["amp"]},
+            "dataloader": {"batch_size": batch, "frames_in_memory_gb": variant["frames_in_memory_gb"]},
+            "training": {"max_steps": steps, "num_epochs": 100000, "lr_warmup_steps": 10, "val_every": 0,
+                         "sample_every": 0, "checkpoint_every": 0, "checkpoint_every_steps": 0, "resume": False,
+                         "progress_bar": False}}
+    for k, v in (extra or {}).items():
+        over.setdefault(k, {}).update(v)
+    fast = image_aug.hsv_to_rgb
+    if variant["hsv"] == "reference":
+        image_aug.hsv_to_rgb = image_aug._hsv_to_rgb_reference
+    try:
+        t0 = time.perf_counter()
+        TrainWorkspace(structured_config(over)).run()
+        wall = time.perf_counter() - t0
+    finally:
+        image_aug.hsv_to_rgb = fast
+    rows = [json.loads(x) for x in (out / "logs.jsonl").read_text().splitlines() if '"train_loss"' in x]
+    t = {r["step"]: r["time"] for r in rows}
+    return {"steps_per_s": (steps - 5) / (t[steps] - t[5]), "wall_s": wall, "first_step_s": t[1]}
+
+
+def bench_phases(path: Path, batch: int = 64, reps: int = 8) -> list[tuple[str, float]]:
+    """Where one step of the fast loop goes (policy=small, 84², fp32, channels-last): seconds per phase, each
+    timed alone over ``reps`` repetitions after a warm-up — the floor the loop's steps/s sits on."""
+    import torch
+
+    from umi_aug.policy.config import structured_config
+    from umi_aug.policy.dataset import UmiPolicyDataset
+    from umi_aug.policy.diffusion_policy import DiffusionUnetPolicy
+    from umi_aug.policy.ema import EMA
+    from umi_aug.policy.image_aug import color_jitter, random_crop_resize
+
+    cfg = structured_config({"task": {"name": "square", "dataset_path": str(path), "image_size": 84,
+                                      "obs_down_sample_steps": 1, "val_ratio": 0.0, "action_key": "action"},
+                             "policy": {"name": "small", "encoder": {"name": "resnet", "resnet_width": 16,
+                                                                     "image_norm": "imagenet"},
+                                        "down_dims": [64, 128, 256], "diffusion_step_embed_dim": 64}})
+    ds = UmiPolicyDataset(path, cfg.task, "train")
+    ds.frames_in_memory(4.0)
+    torch.manual_seed(0)
+    policy = DiffusionUnetPolicy(ds.shape_meta, cfg.policy, warn_random_init=False)
+    policy.set_normalizer(ds.fit_normalizer())
+    ema = EMA(copy.deepcopy(policy))
+    opt = torch.optim.AdamW(policy.parameters(), lr=3e-4)
+    rng = np.random.default_rng(0)
+    b = ds.batch(rng.integers(0, len(ds), batch))
+    img = b["obs"]["camera0_rgb"]
+    enc = policy.obs_encoder
+    nobs = policy.normalizer.normalize(b["obs"])
+    nact = policy.normalizer.normalize(b["action"], "action")
+
+    def timed(fn) -> float:
+        fn()
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            fn()
+        return (time.perf_counter() - t0) / reps
+
+    def fwd_bwd():
+        loss = policy.compute_loss(b)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+
+    def backbone_fwd():
+        with torch.no_grad():
+            x = nobs["camera0_rgb"]
+            enc.backbones["camera0_rgb"](x.reshape(-1, *x.shape[2:]))
+
+    with torch.no_grad():
+        cond = enc(nobs)
+    rows = [("batch from memory (frames + poses → tensors)", timed(lambda: ds.batch(rng.integers(0, len(ds), batch)))),
+            ("random crop + resize", timed(lambda: random_crop_resize(img, 0.95))),
+            ("colour jitter", timed(lambda: color_jitter(img, 0.3, 0.4, 0.5, 0.08))),
+            ("ResNet forward (2 frames × batch)", timed(backbone_fwd))]
+    with torch.no_grad():
+        t_unet = timed(lambda: policy.model(nact, torch.randint(0, 50, (batch,)), global_cond=cond))
+    rows.append(("U-Net forward", t_unet))
+    total = timed(fwd_bwd)
+    rows.append(("forward + backward, whole policy", total))
+    rows.append(("AdamW + EMA", timed(lambda: (opt.step(), ema.step(policy)))))
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset", default=None, help="UMI .zarr.zip with 224² camera0_rgb (default: synthetic)")
@@ -141,11 +256,36 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=0)
     ap.add_argument("--loader-batches", type=int, default=10)
     ap.add_argument("--policies", default="small,resnet18,clip_vit_b16")
+    ap.add_argument("--loop", default=None, metavar="DATASET",
+                    help="time the training loop on this square demo zarr (umi-aug square-demos --image-size 84)")
+    ap.add_argument("--loop-steps", type=int, default=40)
+    ap.add_argument("--loop-rounds", type=int, default=2)
     args = ap.parse_args()
     configure_threads()
     import torch
 
     logging.basicConfig(level=logging.WARNING)
+    if args.loop:
+        print(f"training loop — policy=small, batch 64, 84² square demos {args.loop}, {torch.get_num_threads()} "
+              f"threads, {args.loop_steps} steps per run, {args.loop_rounds} rounds alternating")
+        res: dict[str, list] = {k: [] for k in LOOP_VARIANTS}
+        with tempfile.TemporaryDirectory() as tmp:
+            for r in range(args.loop_rounds):
+                for name, var in LOOP_VARIANTS.items():
+                    res[name].append(bench_loop(Path(args.loop), var, args.loop_steps, 64,
+                                                Path(tmp) / f"{r}_{len(res[name])}_{abs(hash(name))}"))
+        base = np.median([x["steps_per_s"] for x in res[next(iter(LOOP_VARIANTS))]])
+        head = f"{'variant':<46}{'steps/s (runs)':>24}{'×':>7}{'steps/hour':>12}"
+        print(head + "\n" + "-" * len(head))
+        for name, xs in res.items():
+            v = [x["steps_per_s"] for x in xs]
+            med = float(np.median(v))
+            print(f"{name:<46}{' / '.join(f'{x:.2f}' for x in v):>24}{med / base:>7.2f}{med * 3600:>12.0f}")
+        rows = bench_phases(Path(args.loop))
+        print("\nwhere a step goes (fast loop, fp32; each phase timed alone):")
+        for name, sec in rows:
+            print(f"  {name:<48}{sec * 1000:>8.1f} ms")
+        return
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(args.dataset) if args.dataset else make_bench_dataset(Path(tmp) / "dataset.zarr.zip")
         dev = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else platform.processor() or "cpu"

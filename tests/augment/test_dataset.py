@@ -143,7 +143,7 @@ def test_normalizer_covers_augmented_episodes(original, aug_assets):
     assert (s_wide[:3] <= s_plain[:3] * (1 + 1e-5)).all()  # range scale = 2 / (max - min): never narrower
     planned = [ds.planned(*ds.slot(k, 1_000_000)[:3]) for k in range(3)]
     assert any(p is not None for p in planned)
-    pose6, grip, start = ds._episode_arrays(next(p for p in planned if p is not None))
+    pose6, grip, start, _ = ds._episode_arrays(next(p for p in planned if p is not None))
     from umi_aug.policy.dataset import lowdim_from_rows, window_rows
 
     n = len(pose6[0])

@@ -99,6 +99,28 @@ def test_eval_images_have_the_training_scale(size, ratio):
         assert frac(center_crop_resize(sq, ratio)) == pytest.approx(frac(sq) * (size / side) ** 2, rel=0.15)
 
 
+def test_channels_last_resnet_matches_the_nchw_reference(rng):
+    """The ResNet backbone runs channels-last; the same weights in NCHW give the same features and gradients."""
+    from umi_aug.policy.encoders import ResNetBackbone
+
+    torch.manual_seed(int(rng.integers(1 << 30)))
+    net = ResNetBackbone(EncoderConfig(name="resnet", resnet_width=8, resnet_blocks=[1, 1, 1, 1]))
+    assert net.stem[0].weight.is_contiguous(memory_format=torch.channels_last)
+    ref = ResNetBackbone(EncoderConfig(name="resnet", resnet_width=8, resnet_blocks=[1, 1, 1, 1],
+                                       channels_last=False))
+    ref.load_state_dict(net.state_dict())
+    assert ref.stem[0].weight.is_contiguous() and not ref.stem[0].weight.is_contiguous(
+        memory_format=torch.channels_last)
+    x = torch.from_numpy(rng.uniform(0.0, 1.0, (5, 3, 40, 40))).float()
+    x[0] = 0.0  # a black frame
+    y, y_ref = net(x), ref(x)
+    assert torch.isfinite(y).all() and torch.allclose(y, y_ref, atol=1e-5)
+    y.square().sum().backward()
+    y_ref.square().sum().backward()
+    for (name, p), p_ref in zip(net.named_parameters(), ref.parameters()):
+        assert torch.allclose(p.grad, p_ref.grad, atol=1e-4, rtol=1e-4), name
+
+
 def test_resnet_encoder_and_frozen():
     enc = ObsEncoder(_meta(), EncoderConfig(name="resnet", resnet_width=8, resnet_blocks=[1, 1, 1, 1], frozen=True))
     assert enc.feature_dim == 64 and enc.output_dim == 2 * 64 + 32
@@ -173,6 +195,26 @@ def test_color_jitter_and_hsv():
     assert not torch.allclose(out, img)
     assert not torch.allclose(out[0] - img[0], out[1] - img[1])  # per-sample factors
     assert torch.allclose(normalize_image(torch.ones(3, 1, 1), (0.5,) * 3, (0.25,) * 3), torch.full((3, 1, 1), 2.0))
+
+
+def test_fast_hsv_to_rgb_matches_the_reference(rng):
+    """The sector-free hsv_to_rgb against the sector-by-sector reference on fresh random HSV values, with the
+    extremes: grey (s = 0), black (v = 0), hues on the sector borders and just below 1 turn."""
+    from umi_aug.policy.image_aug import _hsv_to_rgb_reference
+
+    n = 4096
+    h = torch.from_numpy(rng.uniform(0.0, 1.0, n)).float()
+    h[:12] = torch.tensor([0.0, 1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6, 1 - 1e-7, 0.5, 1e-8, 0.25, 0.75, 0.999999])
+    s = torch.from_numpy(rng.uniform(0.0, 1.0, n)).float()
+    v = torch.from_numpy(rng.uniform(0.0, 1.0, n)).float()
+    s[12:40], v[40:60], s[60:70], v[60:70] = 0.0, 0.0, 1.0, 1.0
+    hsv = torch.stack([h, s, v]).reshape(3, 64, 64)[None, None]
+    fast, ref = hsv_to_rgb(hsv), _hsv_to_rgb_reference(hsv)
+    assert torch.isfinite(fast).all() and fast.shape == ref.shape
+    assert torch.allclose(fast, ref, atol=2e-6)
+    img = torch.from_numpy(rng.uniform(0.0, 1.0, (2, 3, 3, 16, 16))).float()
+    img[0, 0, :, :4] = 0.5  # grey pixels
+    assert torch.allclose(hsv_to_rgb(rgb_to_hsv(img)), img, atol=2e-6)
 
 
 @pytest.mark.slow

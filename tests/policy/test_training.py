@@ -12,7 +12,7 @@ from tests.policy.helpers import SIZE, tiny_config
 from umi_aug.data import ReplayBuffer
 from umi_aug.errors import PolicyError
 from umi_aug.policy.checkpoint import load_checkpoint
-from umi_aug.policy.config import check_aug, structured_config
+from umi_aug.policy.config import check_aug, check_config, structured_config
 from umi_aug.policy.inference import Policy
 from umi_aug.policy.workspace import TrainWorkspace, iter_jsonl
 
@@ -210,3 +210,35 @@ def test_mid_epoch_checkpoint_resumes_at_the_next_batch(dataset_path, tmp_path, 
     ref_losses, cut_losses = losses("ref"), losses("cut")
     assert len(cut_losses) == 6 + 11  # steps 1-6 before the kill, 6-16 again from the step-5 checkpoint
     np.testing.assert_allclose(cut_losses[-11:], ref_losses[-11:], rtol=1e-5)
+
+
+def test_pause_at_step_slices_a_run_without_changing_it(dataset_path, tmp_path):
+    """``training.pause_at_step`` (time-sliced runs, learning curves): a run paused at step 5 (mid-epoch) and at
+    step 11, then continued, ends with the weights, step count and learning rates of the run never paused (the
+    schedule still spans ``max_steps``)."""
+
+    def cfg_for(name: str, pause=None):
+        cfg = tiny_config(dataset_path, tmp_path / name)
+        t = cfg.training
+        t.num_epochs, t.max_steps, t.val_every, t.sample_every, t.checkpoint_every = 10, 14, 0, 0, 0
+        t.pause_at_step = pause
+        cfg.dataloader.batch_size = 4
+        cfg.task.start_pose_noise = 0.0
+        cfg.output_dir = str(tmp_path / name / "run")
+        return cfg
+
+    ref = TrainWorkspace(cfg_for("ref")).run()
+    assert ref["global_step"] == 14
+    steps = []
+    for pause in (5, 11, None):
+        out = TrainWorkspace(cfg_for("cut", pause)).run()
+        steps.append((out["start_step"], out["global_step"]))
+    assert steps == [(0, 5), (5, 11), (11, 14)]
+    lr = lambda name: [r["lr"] for r in iter_jsonl(tmp_path / name / "run" / "logs.jsonl") if "lr" in r]  # noqa: E731
+    np.testing.assert_allclose(lr("cut"), lr("ref"), rtol=1e-12)
+    a = load_checkpoint(Path(ref["checkpoint"]))["state_dicts"]
+    b = load_checkpoint(Path(out["checkpoint"]))["state_dicts"]
+    for k, v in a["model"].items():
+        torch.testing.assert_close(b["model"][k], v, rtol=0, atol=1e-6, msg=k)
+    with pytest.raises(PolicyError, match="pause_at_step"):
+        check_config(cfg_for("bad", 0))

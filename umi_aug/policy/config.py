@@ -94,7 +94,8 @@ class EncoderConfig:
     share_rgb_model: bool = False
     #: "clip" (OpenAI CLIP mean/std), "imagenet" or "none" — applied in train AND eval (UMI applies none)
     image_norm: str = "clip"
-    #: train-only random crop side as a fraction of the image (UMI: 0.95), then resized back; 1.0 = off
+    #: random crop side as a fraction of the image (UMI: 0.95), resized back; evaluation takes the centred crop of
+    #: the same side (the same scale as training); 1.0 = off
     crop_ratio: float = 0.95
     #: train-only colour jitter (brightness, contrast, saturation, hue) as torchvision's ColorJitter; [] = off
     color_jitter: List[float] = field(default_factory=lambda: [0.3, 0.4, 0.5, 0.08])
@@ -107,6 +108,9 @@ class EncoderConfig:
     # ---- ResNet (ignored for clip_vit); [2,2,2,2] with width 64 = ResNet-18 ----
     resnet_width: int = 64
     resnet_blocks: List[int] = field(default_factory=lambda: [2, 2, 2, 2])
+    #: ResNet activations and weights channels-last (NHWC): ~1.2x (fp32) / 1.3x (bf16) faster CPU convolutions
+    #: than NCHW, the same features (tested); false = NCHW (the reference)
+    channels_last: bool = True
 
 
 @dataclass
@@ -192,6 +196,9 @@ class TrainingConfig:
     num_epochs: int = 120
     #: stop after this many optimiser steps in total (None: run all epochs)
     max_steps: Optional[int] = None
+    #: stop (with a checkpoint) once this many steps are done WITHOUT changing the schedule, which ``max_steps`` /
+    #: ``num_epochs`` define; rerun with a larger value to continue (time-sliced runs, learning curves)
+    pause_at_step: Optional[int] = None
     lr: float = 3.0e-4
     betas: List[float] = field(default_factory=lambda: [0.95, 0.999])
     eps: float = 1.0e-8
@@ -290,6 +297,8 @@ def check_config(cfg: TrainConfig) -> None:
             "only 'epsilon' prediction is supported")
     if not (cfg.dataloader.frames_in_memory_gb >= 0.0 and math.isfinite(cfg.dataloader.frames_in_memory_gb)):
         bad("dataloader.frames_in_memory_gb", cfg.dataloader.frames_in_memory_gb, "must be a finite number >= 0")
+    if cfg.training.pause_at_step is not None and cfg.training.pause_at_step < 1:
+        bad("training.pause_at_step", cfg.training.pause_at_step, "must be >= 1 (or null)")
     if cfg.device.amp not in ("none", "bf16"):
         bad("device.amp", cfg.device.amp, "expected 'none' or 'bf16'")
     if cfg.dataloader.batch_size < 1:

@@ -250,9 +250,13 @@ class ResNetBackbone(nn.Module):
                 raise PolicyError(f"policy.encoder.pretrained_path: {cfg.pretrained_path} does not fit the "
                                   f"ResNet backbone: {exc}") from exc
             self.pretrained = True
+        # channels-last (NHWC) activations and weights: oneDNN's CPU convolutions, their backward above all, run
+        # 1.2-1.3x faster on it than on NCHW (issue #29; NCHW, cfg.channels_last=False, is the reference)
+        self.memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format
+        self.to(memory_format=self.memory_format)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.stages(self.stem(x)).mean(dim=(-2, -1))
+        return self.stages(self.stem(x.contiguous(memory_format=self.memory_format))).mean(dim=(-2, -1))
 
 
 def build_backbone(cfg: EncoderConfig, image_size: int, rgb_key: str = "") -> nn.Module:

@@ -409,7 +409,8 @@ class TrainWorkspace:
         try:
             from tqdm.auto import tqdm
 
-            while epoch < t.num_epochs and (t.max_steps is None or global_step < t.max_steps):
+            stop = min(x for x in (t.max_steps, t.pause_at_step, math.inf) if x is not None)
+            while epoch < t.num_epochs and global_step < stop:
                 policy.train()
                 losses = []
                 if hasattr(train_set, "set_epoch"):
@@ -438,7 +439,7 @@ class TrainWorkspace:
                     bar.set_postfix(loss=f"{lv:.4f}", refresh=False)
                     metrics.write({"step": global_step, "epoch": epoch, "train_loss": lv,
                                    "lr": optimizer.param_groups[0]["lr"], "time": time.perf_counter() - t0})
-                    if t.max_steps is not None and global_step >= t.max_steps:
+                    if global_step >= stop:
                         epoch_done = len(losses) == len(loader)
                         break
                     if t.checkpoint_every_steps and global_step % t.checkpoint_every_steps == 0 \
@@ -448,8 +449,7 @@ class TrainWorkspace:
                 bar.close()
                 row: dict[str, Any] = {"epoch": epoch, "step": global_step,
                                        "train_loss_epoch": float(np.mean(losses)) if losses else float("nan")}
-                last_epoch = (not epoch_done) or epoch + 1 >= t.num_epochs or (
-                    t.max_steps is not None and global_step >= t.max_steps)
+                last_epoch = (not epoch_done) or epoch + 1 >= t.num_epochs or global_step >= stop
                 if t.val_every and len(val_set) and ((epoch + 1) % t.val_every == 0 or last_epoch):
                     row["val_loss"] = self.validate(policy, val_set, device)
                 eval_policy = ema.averaged_model if ema is not None else policy

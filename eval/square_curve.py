@@ -1,0 +1,161 @@
+"""Learning curve of a square policy (issue #29 part 3): success and pre-grasp reached on in-distribution resets
+against training steps and minutes, time-sliced and resumable.
+
+    python eval/square_curve.py --demos square_demos --name none_n50 --every 3000 --max-steps 30000 \
+        --budget-min 60 -- policy=small device.amp=bf16            # train.py overrides after `--`
+
+One training run (``train/train.py task=square``, the schedule spanning ``--max-steps``) is paused every ``--every``
+steps (``training.pause_at_step``); each pause's checkpoint is kept and evaluated by ``eval/eval_sim.py`` on the
+in-distribution resets (``eval/square_init_configs_reset100.npz``: seeded resets the demos' way, seeds no demo
+used), and one row is appended to ``<record>/<name>.jsonl`` (steps, training minutes, success with its Wilson 95 %
+interval, pre-grasp reached, lifted, inserted). Rerunning the same command continues where it stopped; no new slice
+starts after ``--budget-min`` minutes. ``--report`` writes ``<record>/curves.png`` from every record.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def _run(cmd: list[str], log: Path) -> None:
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as fh:
+        fh.write(f"\n$ {' '.join(cmd)}\n")
+        fh.flush()
+        rc = subprocess.run(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT).returncode
+    if rc:
+        raise SystemExit(f"error: `{' '.join(cmd[:3])} …` exited {rc}; see {log}")
+
+
+def _train_minutes(run_dir: Path) -> float:
+    """Training wall minutes of a (possibly resumed) run: the sum of each process's last logged time."""
+    from umi_aug.policy.workspace import iter_jsonl
+
+    total, last, prev_step = 0.0, 0.0, 0
+    for r in iter_jsonl(run_dir / "logs.jsonl"):
+        if "time" not in r:
+            continue
+        if r["step"] <= prev_step:  # a new process (resume) restarts its clock
+            total += last
+        last, prev_step = float(r["time"]), int(r["step"])
+    return (total + last) / 60.0
+
+
+def _rows(path: Path) -> list[dict]:
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
+
+
+def curve(args: argparse.Namespace, train_over: list[str]) -> None:
+    from umi_aug.augment.square_source import check_square_demos
+    from umi_aug.io_utils import atomic_write_text
+    from umi_aug.policy.checkpoint import load_checkpoint
+
+    files = check_square_demos(args.demos)
+    work = Path(args.out) / args.name
+    run_dir = work / "run"
+    record = Path(args.record) / f"{args.name}.jsonl"
+    record.parent.mkdir(parents=True, exist_ok=True)
+    done = {r["step"] for r in _rows(record)}
+    t0 = time.monotonic()
+    for k in range(args.every, args.max_steps + 1, args.every):
+        if k in done:
+            continue
+        if (time.monotonic() - t0) / 60.0 > args.budget_min:
+            print(f"budget of {args.budget_min} min spent; rerun the same command to continue at step {k}")
+            return
+        ckpt = work / "checkpoints" / f"step{k:07d}.ckpt"
+        if not ckpt.exists():
+            latest = run_dir / "checkpoints" / "latest.ckpt"
+            have = int(load_checkpoint(latest)["pickles"]["global_step"]) if latest.exists() else 0
+            if have > k:
+                raise SystemExit(f"error: {latest} is at step {have}, past the curve point {k} it was not kept at")
+            if have < k:
+                _run([sys.executable, "train/train.py", "task=square", f"task.dataset_path={files.zarr}",
+                      f"task.image_size={files.size}", f"hydra.run.dir={run_dir}", f"training.max_steps={args.max_steps}",
+                      f"training.pause_at_step={k}", "training.num_epochs=1000000", "training.val_every=0",
+                      "training.sample_every=0", "training.checkpoint_every=0",
+                      f"training.checkpoint_every_steps={args.every}", "training.progress_bar=false", *train_over],
+                     work / "train.log")
+            ckpt.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(latest, str(ckpt) + ".tmp")
+            Path(str(ckpt) + ".tmp").replace(ckpt)
+        ev = work / f"eval_step{k:07d}"
+        _run([sys.executable, "eval/eval_sim.py", f"checkpoint={ckpt}", f"configs_file={args.configs_file}",
+              f"configs={args.eval_configs}", f"workers={args.workers}", f"out_dir={ev}", "progress=false"],
+             work / "eval.log")
+        s = json.loads((ev / "summary.json").read_text())
+        row = {"name": args.name, "step": k, "train_minutes": round(_train_minutes(run_dir), 2),
+               "n_demos": files.n, "n": s["n"], "success": s["success_rate"], "success_ci95": s["success_wilson95"],
+               **{k: s["subgoals"][g]["rate"] for k, g in (("pregrasp", "pregrasp_reached"), ("lifted", "lifted"),
+                                                            ("inserted", "inserted"))},
+               "train_overrides": train_over, "eval_configs": args.eval_configs}
+        atomic_write_text(record, record.read_text() + json.dumps(row) + "\n" if record.exists()
+                          else json.dumps(row) + "\n")
+        print(json.dumps(row))
+
+
+def report(record_dir: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for f in sorted(record_dir.glob("*.jsonl")):
+        rows = sorted(_rows(f), key=lambda r: r["step"])
+        if not rows:
+            continue
+        m = [r["train_minutes"] for r in rows]
+        axes[0].plot(m, [100 * r["success"] for r in rows], "o-", label=f.stem)
+        axes[1].plot(m, [100 * (r["pregrasp"] or 0) for r in rows], "o-", label=f.stem)
+    for ax, what in zip(axes, ("full-task success", "pre-grasp reached")):
+        ax.set_xlabel("training minutes (2 CPU cores)")
+        ax.set_ylabel(f"{what} (%)")
+        ax.set_ylim(-2, 102)
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.suptitle("square, in-distribution resets (eval/square_init_configs_reset100.npz)")
+    out = record_dir / "curves.png"
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    over = argv[argv.index("--") + 1:] if "--" in argv else []
+    own = argv[: argv.index("--")] if "--" in argv else argv
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--demos", default="square_demos")
+    ap.add_argument("--name", default=None)
+    ap.add_argument("--every", type=int, default=3000)
+    ap.add_argument("--max-steps", type=int, default=30000)
+    ap.add_argument("--budget-min", type=float, default=1e9)
+    ap.add_argument("--eval-configs", default="0:50")
+    ap.add_argument("--configs-file", default="eval/square_init_configs_reset100.npz")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", default="square_curve")
+    ap.add_argument("--record", default="docs/square_curve")
+    ap.add_argument("--report", action="store_true", help="only write <record>/curves.png")
+    args = ap.parse_args(own)
+    if args.report:
+        print(report(Path(args.record)))
+        return 0
+    if not args.name or args.every < 1 or args.max_steps < args.every:
+        ap.error("--name is required and 1 <= --every <= --max-steps")
+    curve(args, over)
+    report(Path(args.record))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
