@@ -7,7 +7,8 @@ For each listed demo episode (the demos of ``umi-aug square-demos`` start from s
 when every seed succeeded — ``report.json`` lists them): (1) the evaluation harness's observation at the demo's
 start state — the env reset with that seed and eval's wrist camera — against the dataset's first row (image mean
 absolute difference in grey levels, position / rotation-vector / width error); (2) the policy's action chunk
-predicted from the dataset's own first observation (``--samples`` noise seeds) against the demo's next poses:
+predicted from the dataset's own first observation (``--samples`` noise seeds) against the demo's next labels (the
+commanded targets with ``task.action_key``, else the poses):
 position error per target (mm), and how far the demo itself moves over the chunk. Large open-loop errors on the
 policy's own training data mean an under-trained policy, not a harness fault.
 """
@@ -73,7 +74,10 @@ def main() -> None:
                            f"{np.linalg.norm(obs['robot0_eef_rot_axis_angle'] - row['robot0_eef_rot_axis_angle']):.4f}",
                            f"{1000 * abs(np.ravel(obs['robot0_gripper_width'])[0] - row['robot0_gripper_width'][0]):.3f}")
                 o = {k: np.stack([v, v]) for k, v in row.items()} | {"camera0_rgb": np.stack([d_img, d_img])}
-                demo = np.asarray(buf["robot0_eef_pos"][sl.start:sl.start + n_exec + 1], np.float64)
+                key = pol.policy.task.action_key  # the labels: commanded targets (square) or the poses (UMI)
+                lab = buf[key][sl.start:sl.start + n_exec + 1, :3] if key else \
+                    buf["robot0_eef_pos"][sl.start:sl.start + n_exec + 1]
+                demo = np.asarray(lab, np.float64)
                 for s in range(args.samples):
                     chunk = pol.policy.predict_action(o, n_steps=n_exec + 1, generator=torch.Generator().manual_seed(s))
                     err = 1000 * np.linalg.norm(chunk[: len(demo), :3] - demo, axis=1)

@@ -40,13 +40,13 @@ def _train_minutes(run_dir: Path) -> float:
     """Training wall minutes of a (possibly resumed) run: the sum of each process's last logged time."""
     from umi_aug.policy.workspace import iter_jsonl
 
-    total, last, prev_step = 0.0, 0.0, 0
+    total, last = 0.0, 0.0
     for r in iter_jsonl(run_dir / "logs.jsonl"):
         if "time" not in r:
             continue
-        if r["step"] <= prev_step:  # a new process (resume) restarts its clock
+        if float(r["time"]) < last:  # a new process (a resumed slice) restarts its clock
             total += last
-        last, prev_step = float(r["time"]), int(r["step"])
+        last = float(r["time"])
     return (total + last) / 60.0
 
 

@@ -1,0 +1,38 @@
+"""eval/square_curve.py's bookkeeping: training minutes of a run resumed across processes, and its records."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("square_curve", ROOT / "eval" / "square_curve.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_training_minutes_sum_the_processes_of_a_resumed_run(tmp_path):
+    mod = _module()
+    rows = [{"step": s, "train_loss": 1.0, "time": 6.0 * s} for s in range(1, 11)]  # first process: 60 s
+    rows += [{"epoch": 0, "step": 10, "train_loss_epoch": 1.0}]  # an epoch row has no time
+    rows += [{"step": s, "train_loss": 1.0, "time": 3.0 * (s - 10)} for s in range(11, 21)]  # resumed: 30 s
+    (tmp_path / "logs.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert abs(mod._train_minutes(tmp_path) - 1.5) < 1e-9
+    rec = tmp_path / "r.jsonl"
+    assert mod._rows(rec) == []
+    rec.write_text(json.dumps({"step": 3000}) + "\n\n" + json.dumps({"step": 6000}) + "\n")
+    assert [r["step"] for r in mod._rows(rec)] == [3000, 6000]
+
+
+def test_bad_arguments_are_refused(capsys):
+    mod = _module()
+    import pytest
+
+    with pytest.raises(SystemExit):
+        mod.main(["--every", "0", "--name", "x"])
+    assert "--every" in capsys.readouterr().err
