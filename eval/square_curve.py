@@ -152,7 +152,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not args.name or args.every < 1 or args.max_steps < args.every:
         ap.error("--name is required and 1 <= --every <= --max-steps")
-    curve(args, over)
+    from umi_aug.errors import UmiAugError
+
+    try:
+        curve(args, over)
+    except UmiAugError as exc:  # a bad demo folder, named by the check before any training
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     report(Path(args.record))
     return 0
 

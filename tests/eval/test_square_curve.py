@@ -36,3 +36,6 @@ def test_bad_arguments_are_refused(capsys):
     with pytest.raises(SystemExit):
         mod.main(["--every", "0", "--name", "x"])
     assert "--every" in capsys.readouterr().err
+    assert mod.main(["--name", "x", "--demos", "/nonexistent/demos"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "/nonexistent/demos" in err and "Traceback" not in err
