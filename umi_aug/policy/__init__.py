@@ -3,6 +3,8 @@
 * :class:`DiffusionUnetPolicy` — encoder + 1-D conditional U-Net + diffusers scheduler (UMI's interface:
   ``compute_loss(batch)``, ``predict_action(obs) -> {'action', 'action_pred'}`` in the model's relative 10-D
   representation).
+* :class:`RegressionChunkPolicy` — the same encoder with an MLP that regresses the chunk (``policy.action_head:
+  regression``); both are :class:`ChunkPolicy`, built from a config by :func:`build_policy`.
 * :class:`Policy` — deployment wrapper: ``Policy.from_checkpoint(path).predict_action(env_obs)`` → absolute TCP
   actions ``[n, 7]`` (pos, rotvec, gripper).
 * :class:`UmiPolicyDataset` — UMI sampling from a replay buffer; :class:`TrainWorkspace` — the training loop that
@@ -20,7 +22,8 @@ from umi_aug.policy.config import (
 __all__ = [
     "TrainConfig", "TaskConfig", "PolicyConfig", "EncoderConfig", "SchedulerConfig", "AugConfig", "DeviceConfig",
     "DataloaderConfig", "TrainingConfig", "structured_config", "check_config", "check_aug", "shape_meta",
-    "ConditionalUnet1D", "LinearNormalizer", "ObsEncoder", "DiffusionUnetPolicy", "UmiPolicyDataset", "AugmentedUmiDataset",
+    "ConditionalUnet1D", "LinearNormalizer", "ObsEncoder", "DiffusionUnetPolicy",
+    "RegressionChunkPolicy", "ChunkPolicy", "build_policy", "UmiPolicyDataset", "AugmentedUmiDataset",
     "TrainWorkspace", "Policy", "save_checkpoint", "load_checkpoint",
     "abs_actions_to_model", "model_actions_to_abs",
 ]
@@ -30,6 +33,9 @@ _LAZY = {
     "LinearNormalizer": "umi_aug.policy.normalizer",
     "ObsEncoder": "umi_aug.policy.encoders",
     "DiffusionUnetPolicy": "umi_aug.policy.diffusion_policy",
+    "RegressionChunkPolicy": "umi_aug.policy.regression_policy",
+    "ChunkPolicy": "umi_aug.policy.chunk_policy",
+    "build_policy": "umi_aug.policy.heads",
     "UmiPolicyDataset": "umi_aug.policy.dataset",
     "AugmentedUmiDataset": "umi_aug.policy.augmented_dataset",
     "TrainWorkspace": "umi_aug.policy.workspace",

@@ -24,6 +24,10 @@ AUG_MODES: dict[str, tuple[str, ...]] = {"none": (), "freespace": ("freespace",)
                                          "both": ("freespace", "obstacle")}
 #: Observation-encoder backbones (``policy.encoder.name``).
 ENCODER_NAMES: tuple[str, ...] = ("clip_vit", "resnet")
+#: Action heads (``policy.action_head``): Diffusion Policy's U-Net, or deterministic chunk regression (issue #29).
+ACTION_HEADS: tuple[str, ...] = ("diffusion", "regression")
+#: Losses of the regression head (``policy.regression_loss``), on normalised actions.
+REGRESSION_LOSSES: tuple[str, ...] = ("l1", "mse")
 #: ``task.make_if_missing`` values: build the dataset when ``dataset_path`` does not exist.
 MAKE_IF_MISSING: tuple[str, ...] = ("", "demo", "session")
 
@@ -115,10 +119,17 @@ class EncoderConfig:
 
 @dataclass
 class PolicyConfig:
-    """Diffusion Policy with a 1-D temporal conditional U-Net (UMI's ``DiffusionUnetTimmPolicy`` settings)."""
+    """Diffusion Policy with a 1-D temporal conditional U-Net (UMI's ``DiffusionUnetTimmPolicy`` settings), or
+    (``action_head: regression``) the same encoder with an MLP that regresses the chunk."""
 
     name: str = "clip_vit_b16"
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    #: "diffusion" (the paper's: U-Net + scheduler below) or "regression" (MLP ``head_hidden_dims``, one pass)
+    action_head: str = "diffusion"
+    #: hidden widths of the regression MLP (robomimic BC: [1024, 1024])
+    head_hidden_dims: List[int] = field(default_factory=lambda: [1024, 1024])
+    #: "l1" (ACT) or "mse", on normalised actions
+    regression_loss: str = "l1"
     noise_scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)
     num_inference_steps: int = 16
     diffusion_step_embed_dim: int = 128
@@ -284,12 +295,20 @@ def check_config(cfg: TrainConfig) -> None:
         bad("policy.encoder.crop_ratio", p.encoder.crop_ratio, "must be in (0, 1]")
     if len(p.encoder.color_jitter) not in (0, 4):
         bad("policy.encoder.color_jitter", p.encoder.color_jitter, "expected [] or [brightness, contrast, saturation, hue]")
-    n_down = len(p.down_dims) - 1
-    if not p.down_dims or t.action_horizon % (2 ** n_down):
-        bad("task.action_horizon", t.action_horizon,
-            f"must be divisible by 2^(len(policy.down_dims)-1) = {2 ** n_down} (the U-Net halves it {n_down} times)")
-    if any(d % p.n_groups for d in p.down_dims):
-        bad("policy.down_dims", list(p.down_dims), f"every entry must be divisible by n_groups={p.n_groups}")
+    if p.action_head not in ACTION_HEADS:
+        bad("policy.action_head", p.action_head, f"expected one of {list(ACTION_HEADS)}")
+    if p.regression_loss not in REGRESSION_LOSSES:
+        bad("policy.regression_loss", p.regression_loss, f"expected one of {list(REGRESSION_LOSSES)}")
+    if p.action_head == "regression" and any(int(d) < 1 for d in p.head_hidden_dims):
+        bad("policy.head_hidden_dims", list(p.head_hidden_dims), "every width must be >= 1")
+    if p.action_head == "diffusion":  # the U-Net halves the horizon len(down_dims)-1 times, in GroupNorm groups
+        n_down = len(p.down_dims) - 1
+        if not p.down_dims or t.action_horizon % (2 ** n_down):
+            bad("task.action_horizon", t.action_horizon,
+                f"must be divisible by 2^(len(policy.down_dims)-1) = {2 ** n_down} (the U-Net halves it {n_down} "
+                "times)")
+        if any(d % p.n_groups for d in p.down_dims):
+            bad("policy.down_dims", list(p.down_dims), f"every entry must be divisible by n_groups={p.n_groups}")
     if not 1 <= p.n_action_steps <= t.action_horizon:
         bad("policy.n_action_steps", p.n_action_steps, f"must be in [1, task.action_horizon={t.action_horizon}]")
     if p.noise_scheduler.prediction_type != "epsilon":

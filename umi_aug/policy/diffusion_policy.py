@@ -16,12 +16,10 @@ from typing import Any, Mapping
 
 import torch
 import torch.nn.functional as F
-from torch import nn
 
 from umi_aug.errors import PolicyError
+from umi_aug.policy.chunk_policy import ChunkPolicy
 from umi_aug.policy.config import PolicyConfig, SchedulerConfig
-from umi_aug.policy.encoders import ObsEncoder
-from umi_aug.policy.normalizer import LinearNormalizer
 from umi_aug.policy.unet import ConditionalUnet1D
 
 __all__ = ["DiffusionUnetPolicy", "build_noise_scheduler"]
@@ -45,21 +43,14 @@ def build_noise_scheduler(cfg: SchedulerConfig):
     return cls(**kwargs)
 
 
-class DiffusionUnetPolicy(nn.Module):
+class DiffusionUnetPolicy(ChunkPolicy):
     """Args:
         shape_meta: UMI-style shapes (:func:`umi_aug.policy.config.shape_meta`).
         cfg: :class:`PolicyConfig`.
     """
 
     def __init__(self, shape_meta: Mapping[str, Any], cfg: PolicyConfig, warn_random_init: bool = True) -> None:
-        super().__init__()
-        act = shape_meta["action"]
-        self.shape_meta = shape_meta
-        self.cfg = cfg
-        self.action_dim = int(act["shape"][0])
-        self.action_horizon = int(act["horizon"])
-        self.obs_encoder = ObsEncoder(shape_meta, cfg.encoder, warn_random_init)
-        self.obs_feature_dim = self.obs_encoder.output_dim
+        super().__init__(shape_meta, cfg, warn_random_init)
         self.model = ConditionalUnet1D(
             input_dim=self.action_dim, global_cond_dim=self.obs_feature_dim,
             diffusion_step_embed_dim=cfg.diffusion_step_embed_dim, down_dims=cfg.down_dims,
@@ -68,29 +59,14 @@ class DiffusionUnetPolicy(nn.Module):
             raise PolicyError(f"action horizon {self.action_horizon} must be a multiple of "
                               f"{self.model.horizon_multiple} for down_dims={list(cfg.down_dims)}")
         self.noise_scheduler = build_noise_scheduler(cfg.noise_scheduler)
-        self.normalizer = LinearNormalizer()
         self.num_inference_steps = int(cfg.num_inference_steps or cfg.noise_scheduler.num_train_timesteps)
         self.input_pertub = float(cfg.input_pertub)
-
-    @property
-    def device(self) -> torch.device:
-        return next(self.parameters()).device
-
-    def set_normalizer(self, normalizer: LinearNormalizer) -> None:
-        self.normalizer.load_state_dict(normalizer.state_dict())
-        self.normalizer.to(self.device)
-
-    def _check_normalizer(self) -> None:
-        if "action" not in self.normalizer:
-            raise PolicyError("the policy has no fitted normaliser; call set_normalizer(dataset.fit_normalizer())")
 
     # ------------------------------------------------------------------ training
     def compute_loss(self, batch: Mapping[str, Any], generator: torch.Generator | None = None) -> torch.Tensor:
         """Epsilon-prediction MSE on ``batch = {'obs': {key: [B, T, ...]}, 'action': [B, H, Da]}``."""
-        self._check_normalizer()
-        nobs = self.normalizer.normalize(batch["obs"])
+        cond = self.encode_obs(batch["obs"])
         nact = self.normalizer.normalize(batch["action"], "action")
-        cond = self.obs_encoder(nobs)
         dev = nact.device
         noise = torch.randn(nact.shape, generator=generator, device="cpu").to(dev)
         noise_in = noise + self.input_pertub * torch.randn(nact.shape, generator=generator, device="cpu").to(dev)
@@ -99,9 +75,6 @@ class DiffusionUnetPolicy(nn.Module):
         noisy = self.noise_scheduler.add_noise(nact, noise_in, t)
         pred = self.model(noisy, t, global_cond=cond)
         return F.mse_loss(pred.float(), noise.float())
-
-    def forward(self, batch: Mapping[str, Any]) -> torch.Tensor:
-        return self.compute_loss(batch)
 
     # ------------------------------------------------------------------ inference
     @torch.no_grad()
@@ -122,9 +95,7 @@ class DiffusionUnetPolicy(nn.Module):
                        ) -> dict[str, torch.Tensor]:
         """UMI's interface: model-format obs ``{key: [B, T, ...]}`` → ``{'action', 'action_pred'}`` both the full
         unnormalised ``[B, H, Da]`` sequence (relative pos + rot6d + gripper per arm)."""
-        self._check_normalizer()
-        nobs = self.normalizer.normalize(dict(obs_dict))
-        cond = self.obs_encoder(nobs)
+        cond = self.encode_obs(obs_dict)
         nsample = self.conditional_sample(cond.float(), generator)
         action = self.normalizer.unnormalize(nsample, "action")
         return {"action": action, "action_pred": action}

@@ -32,7 +32,8 @@ import torch.nn.functional as F
 from umi_aug.errors import PolicyError
 from umi_aug.policy.checkpoint import load_checkpoint
 from umi_aug.policy.config import TrainConfig, shape_meta, structured_config
-from umi_aug.policy.diffusion_policy import DiffusionUnetPolicy
+from umi_aug.policy.chunk_policy import ChunkPolicy
+from umi_aug.policy.heads import build_policy
 from umi_aug.policy.pose_repr import model_actions_to_abs, obs_pose_to_model, wrt_start_rot6d
 
 __all__ = ["Policy", "prepare_images"]
@@ -65,12 +66,12 @@ class Policy:
     """A trained policy ready for closed-loop control.
 
     Args:
-        model: the :class:`DiffusionUnetPolicy` (usually the EMA weights).
+        model: the :class:`ChunkPolicy` (usually the EMA weights).
         cfg: the training config it was trained with.
         device: torch device for inference.
     """
 
-    def __init__(self, model: DiffusionUnetPolicy, cfg: TrainConfig, device: str | torch.device = "cpu") -> None:
+    def __init__(self, model: ChunkPolicy, cfg: TrainConfig, device: str | torch.device = "cpu") -> None:
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
         self.cfg = cfg
@@ -87,7 +88,7 @@ class Policy:
         cfg = structured_config(payload["cfg"])
         build_cfg = copy.deepcopy(cfg)
         build_cfg.policy.encoder.pretrained_path = None  # the weights come from the checkpoint
-        model = DiffusionUnetPolicy(shape_meta(cfg.task), build_cfg.policy, warn_random_init=False)
+        model = build_policy(shape_meta(cfg.task), build_cfg.policy, warn_random_init=False)
         sd = payload["state_dicts"]
         state = sd["ema_model"] if use_ema and "ema_model" in sd else sd["model"]
         try:

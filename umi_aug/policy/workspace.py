@@ -34,8 +34,9 @@ from umi_aug.errors import PolicyError
 from umi_aug.policy.checkpoint import load_checkpoint, save_checkpoint
 from umi_aug.policy.config import TrainConfig, check_aug, check_config, config_to_dict, structured_config
 from umi_aug.policy.dataset import UmiPolicyDataset
-from umi_aug.policy.diffusion_policy import DiffusionUnetPolicy
+from umi_aug.policy.chunk_policy import ChunkPolicy
 from umi_aug.policy.ema import EMA
+from umi_aug.policy.heads import build_policy
 from umi_aug.runtime import configure_threads
 
 __all__ = ["TrainWorkspace", "resolve_dataset_path", "seed_everything", "build_optimizer", "build_lr_scheduler",
@@ -235,7 +236,7 @@ def resolve_dataset_path(cfg: TrainConfig) -> Path:
     return path
 
 
-def build_optimizer(policy: DiffusionUnetPolicy, cfg: TrainConfig) -> torch.optim.Optimizer:
+def build_optimizer(policy: ChunkPolicy, cfg: TrainConfig) -> torch.optim.Optimizer:
     """AdamW; the image backbone gets ``lr · pretrained_encoder_lr_scale`` when it started from pretrained weights."""
     t = cfg.training
     enc = {id(p) for p in policy.obs_encoder.backbone_parameters()}
@@ -367,7 +368,7 @@ class TrainWorkspace:
         log.info("dataset: %s; %s", train_set.describe(), val_set.describe())
         normalizer = train_set.fit_normalizer()
 
-        policy = DiffusionUnetPolicy(train_set.shape_meta, cfg.policy).to(device)
+        policy = build_policy(train_set.shape_meta, cfg.policy).to(device)
         policy.set_normalizer(normalizer)
         ema = None
         if t.use_ema:
@@ -484,7 +485,7 @@ class TrainWorkspace:
             "rng": {"torch": torch.get_rng_state()}})
 
     @torch.no_grad()
-    def validate(self, policy: DiffusionUnetPolicy, val_set: UmiPolicyDataset, device: torch.device) -> float:
+    def validate(self, policy: ChunkPolicy, val_set: UmiPolicyDataset, device: torch.device) -> float:
         policy.eval()
         losses = []
         g = torch.Generator().manual_seed(self.cfg.training.seed)
@@ -496,7 +497,7 @@ class TrainWorkspace:
         return float(np.mean(losses)) if losses else float("nan")
 
     @torch.no_grad()
-    def action_mse(self, policy: DiffusionUnetPolicy, ds: UmiPolicyDataset, device: torch.device) -> float:
+    def action_mse(self, policy: ChunkPolicy, ds: UmiPolicyDataset, device: torch.device) -> float:
         """MSE between sampled and ground-truth (unnormalised) actions on the first training batch."""
         was = policy.training
         policy.eval()
