@@ -55,14 +55,33 @@ def _rows(path: Path) -> list[dict]:
 
 
 def curve(args: argparse.Namespace, train_over: list[str]) -> None:
+    """Run (or continue) the curve ``args.name``; one process per name at a time (a second is refused)."""
+    from umi_aug.io_utils import exclusive_run_lock
+
+    work = Path(args.out) / args.name
+    with exclusive_run_lock(work / "curve.lock", f"square_curve run of {args.name!r}"):
+        _curve_locked(args, train_over, work)
+
+
+def _check_same_recipe(record: Path, train_over: list[str]) -> None:
+    """A record continues only with the training overrides it was started with (else its rows would mix recipes)."""
+    from umi_aug.errors import EvalError
+
+    for row in _rows(record):
+        if row.get("train_overrides") != train_over:
+            raise EvalError(f"{record}: step {row.get('step')} was trained with overrides {row.get('train_overrides')}"
+                            f", this run asks for {train_over}; use another --name for another recipe")
+
+
+def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -> None:
     from umi_aug.augment.square_source import check_square_demos
     from umi_aug.io_utils import atomic_write_text
     from umi_aug.policy.checkpoint import load_checkpoint
 
-    files = check_square_demos(args.demos)
-    work = Path(args.out) / args.name
-    run_dir = work / "run"
     record = Path(args.record) / f"{args.name}.jsonl"
+    _check_same_recipe(record, train_over)
+    files = check_square_demos(args.demos)
+    run_dir = work / "run"
     record.parent.mkdir(parents=True, exist_ok=True)
     done = {r["step"] for r in _rows(record)}
     t0 = time.monotonic()
@@ -153,10 +172,11 @@ def main(argv: list[str] | None = None) -> int:
     if not args.name or args.every < 1 or args.max_steps < args.every:
         ap.error("--name is required and 1 <= --every <= --max-steps")
     from umi_aug.errors import UmiAugError
+    from umi_aug.io_utils import RunLockedError
 
     try:
         curve(args, over)
-    except UmiAugError as exc:  # a bad demo folder, named by the check before any training
+    except (UmiAugError, RunLockedError) as exc:  # a bad demo folder, another recipe, a second run: before training
         print(f"error: {exc}", file=sys.stderr)
         return 2
     report(Path(args.record))

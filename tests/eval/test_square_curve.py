@@ -39,3 +39,26 @@ def test_bad_arguments_are_refused(capsys):
     assert mod.main(["--name", "x", "--demos", "/nonexistent/demos"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "/nonexistent/demos" in err and "Traceback" not in err
+
+
+def test_a_second_run_and_another_recipe_are_refused(tmp_path, capsys):
+    """Two processes on one curve name, or a continuation with other training overrides, would mix or clobber the
+    record: each is refused with one error line before anything trains."""
+    from umi_aug.io_utils import exclusive_run_lock
+
+    mod = _module()
+    common = ["--name", "c", "--out", str(tmp_path / "out"), "--record", str(tmp_path / "rec"),
+              "--demos", str(tmp_path / "no_demos")]
+    with exclusive_run_lock(tmp_path / "out" / "c" / "curve.lock", "test holder"):
+        assert mod.main(common) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "curve.lock" in err and "another" in err and "Traceback" not in err
+
+    (tmp_path / "rec").mkdir()
+    row = {"name": "c", "step": 3000, "train_overrides": ["policy=small"]}
+    (tmp_path / "rec" / "c.jsonl").write_text(json.dumps(row) + "\n")
+    assert mod.main([*common, "--", "policy=small_regression"]) == 2
+    err = capsys.readouterr().err
+    assert "c.jsonl" in err and "policy=small_regression" in err and "another --name" in err
+    assert mod.main([*common, "--", "policy=small"]) == 2  # the same recipe gets past, to the demo check
+    assert "no_demos" in capsys.readouterr().err
