@@ -99,21 +99,70 @@ def test_eval_images_have_the_training_scale(size, ratio):
         assert frac(center_crop_resize(sq, ratio)) == pytest.approx(frac(sq) * (size / side) ** 2, rel=0.15)
 
 
-def test_channels_last_resnet_matches_the_nchw_reference(rng):
+def _spatial_softmax_reference(feat, weight, bias):
+    """Keypoints the slow way: per sample and keypoint, loop over the cells, softmax weights in float64."""
+    n, c, h, w = feat.shape
+    k = weight.shape[0]
+    out = torch.zeros(n, 2 * k, dtype=torch.float64)
+    f, wt, b = feat.double(), weight.double().reshape(k, c), bias.double()
+    for i in range(n):
+        for j in range(k):
+            logits = [(wt[j] * f[i, :, r, q]).sum() + b[j] for r in range(h) for q in range(w)]
+            m = max(float(v) for v in logits)
+            e = [torch.exp(v - m) for v in logits]
+            z = sum(e)
+            for idx, ev in enumerate(e):
+                r, q = divmod(idx, w)
+                x = -1.0 + 2.0 * q / (w - 1) if w > 1 else -1.0
+                y = -1.0 + 2.0 * r / (h - 1) if h > 1 else -1.0
+                out[i, 2 * j] += ev / z * x
+                out[i, 2 * j + 1] += ev / z * y
+    return out
+
+
+@pytest.mark.parametrize("shape", [(3, 5, 3, 3), (2, 4, 6, 4), (2, 3, 1, 5)])
+def test_spatial_softmax_matches_the_reference(rng, shape):
+    """The batched keypoints equal a per-cell loop on random maps, moderate and extreme logits (a near one-hot
+    softmax must not overflow to NaN); a single peak lands on its cell's centre, x along the width."""
+    from umi_aug.policy.encoders import SpatialSoftmax
+
+    n, c, h, w = shape
+    torch.manual_seed(int(rng.integers(1 << 30)))
+    ss = SpatialSoftmax(c, 4)
+    for scale in (1.0, 300.0):
+        feat = torch.from_numpy(rng.normal(0.0, scale, shape)).float()
+        got = ss(feat)
+        want = _spatial_softmax_reference(feat, ss.keypoint_maps.weight.detach(), ss.keypoint_maps.bias.detach())
+        assert got.shape == (n, 8) and torch.isfinite(got).all()
+        assert torch.allclose(got.double(), want, atol=1e-5), (scale, (got.double() - want).abs().max())
+        assert got.abs().max() <= 1.0 + 1e-6
+    one = SpatialSoftmax(1, 1)
+    with torch.no_grad():
+        one.keypoint_maps.weight.fill_(1.0)
+        one.keypoint_maps.bias.zero_()
+    peak = torch.zeros(1, 1, 3, 5)
+    peak[0, 0, 2, 1] = 1e4  # bottom row, second column
+    assert torch.allclose(one(peak), torch.tensor([[-0.5, 1.0]]), atol=1e-6)
+
+
+@pytest.mark.parametrize("pool", ["avg", "spatial_softmax"])
+def test_channels_last_resnet_matches_the_nchw_reference(rng, pool):
     """The ResNet backbone runs channels-last; the same weights in NCHW give the same features and gradients."""
     from umi_aug.policy.encoders import ResNetBackbone
 
     torch.manual_seed(int(rng.integers(1 << 30)))
-    net = ResNetBackbone(EncoderConfig(name="resnet", resnet_width=8, resnet_blocks=[1, 1, 1, 1]))
+    kw = dict(name="resnet", resnet_width=8, resnet_blocks=[1, 1, 1, 1], resnet_pool=pool, spatial_softmax_keypoints=6)
+    net = ResNetBackbone(EncoderConfig(**kw))
+    assert net.feature_dim == (12 if pool == "spatial_softmax" else 64)
     assert net.stem[0].weight.is_contiguous(memory_format=torch.channels_last)
-    ref = ResNetBackbone(EncoderConfig(name="resnet", resnet_width=8, resnet_blocks=[1, 1, 1, 1],
-                                       channels_last=False))
+    ref = ResNetBackbone(EncoderConfig(**kw, channels_last=False))
     ref.load_state_dict(net.state_dict())
     assert ref.stem[0].weight.is_contiguous() and not ref.stem[0].weight.is_contiguous(
         memory_format=torch.channels_last)
     x = torch.from_numpy(rng.uniform(0.0, 1.0, (5, 3, 40, 40))).float()
     x[0] = 0.0  # a black frame
     y, y_ref = net(x), ref(x)
+    assert y.shape == (5, net.feature_dim)
     assert torch.isfinite(y).all() and torch.allclose(y, y_ref, atol=1e-5)
     y.square().sum().backward()
     y_ref.square().sum().backward()

@@ -96,3 +96,8 @@ def test_regression_settings_are_checked(dataset_path, tmp_path):
         setattr(cfg.policy, field, value)
         with pytest.raises(PolicyError, match=match):
             check_config(cfg)
+    for field, value in [("resnet_pool", "max"), ("spatial_softmax_keypoints", 0)]:
+        cfg = _regression_config(dataset_path, tmp_path)
+        setattr(cfg.policy.encoder, field, value)
+        with pytest.raises(PolicyError, match=f"policy.encoder.{field}"):
+            check_config(cfg)

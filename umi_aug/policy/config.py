@@ -24,6 +24,8 @@ AUG_MODES: dict[str, tuple[str, ...]] = {"none": (), "freespace": ("freespace",)
                                          "both": ("freespace", "obstacle")}
 #: Observation-encoder backbones (``policy.encoder.name``).
 ENCODER_NAMES: tuple[str, ...] = ("clip_vit", "resnet")
+#: Pooling of the ResNet's last feature map (``policy.encoder.resnet_pool``).
+RESNET_POOLS: tuple[str, ...] = ("avg", "spatial_softmax")
 #: Action heads (``policy.action_head``): Diffusion Policy's U-Net, or deterministic chunk regression (issue #29).
 ACTION_HEADS: tuple[str, ...] = ("diffusion", "regression")
 #: Losses of the regression head (``policy.regression_loss``), on normalised actions.
@@ -112,6 +114,10 @@ class EncoderConfig:
     # ---- ResNet (ignored for clip_vit); [2,2,2,2] with width 64 = ResNet-18 ----
     resnet_width: int = 64
     resnet_blocks: List[int] = field(default_factory=lambda: [2, 2, 2, 2])
+    #: "avg" (global average pooling → 8·width features) or "spatial_softmax" (keypoint coordinates, robomimic)
+    resnet_pool: str = "avg"
+    #: keypoints K of the spatial softmax (2K features; robomimic: 32)
+    spatial_softmax_keypoints: int = 32
     #: ResNet activations and weights channels-last (NHWC): ~1.2x (fp32) / 1.3x (bf16) faster CPU convolutions
     #: than NCHW, the same features (tested); false = NCHW (the reference)
     channels_last: bool = True
@@ -295,6 +301,10 @@ def check_config(cfg: TrainConfig) -> None:
         bad("policy.encoder.crop_ratio", p.encoder.crop_ratio, "must be in (0, 1]")
     if len(p.encoder.color_jitter) not in (0, 4):
         bad("policy.encoder.color_jitter", p.encoder.color_jitter, "expected [] or [brightness, contrast, saturation, hue]")
+    if p.encoder.resnet_pool not in RESNET_POOLS:
+        bad("policy.encoder.resnet_pool", p.encoder.resnet_pool, f"expected one of {list(RESNET_POOLS)}")
+    if p.encoder.spatial_softmax_keypoints < 1:
+        bad("policy.encoder.spatial_softmax_keypoints", p.encoder.spatial_softmax_keypoints, "must be >= 1")
     if p.action_head not in ACTION_HEADS:
         bad("policy.action_head", p.action_head, f"expected one of {list(ACTION_HEADS)}")
     if p.regression_loss not in REGRESSION_LOSSES:

@@ -35,7 +35,7 @@ from umi_aug.policy.image_aug import (
 )
 
 __all__ = ["ObsEncoder", "ClipVitBackbone", "ResNetBackbone", "load_weights_file", "timm_clip_to_hf",
-           "build_backbone"]
+           "build_backbone", "SpatialSoftmax"]
 
 log = logging.getLogger(__name__)
 
@@ -225,9 +225,37 @@ class _BasicBlock(nn.Module):
         return torch.relu(y + (x if self.down is None else self.down(x)))
 
 
+class SpatialSoftmax(nn.Module):
+    """Keypoints of a feature map (Levine et al. 2016; robomimic's and Diffusion Policy's ResNet pooling): a 1×1
+    convolution to ``K`` maps, a softmax over each map's H·W cells, and each map's expected cell centre
+    ``(x, y)`` in [−1, 1] (x along the width, left → right; y along the height, top → bottom) → ``[N, 2K]`` as
+    ``[x_0, y_0, x_1, y_1, …]``. Unlike global average pooling it keeps WHERE a feature is in the image."""
+
+    def __init__(self, in_channels: int, n_keypoints: int) -> None:
+        super().__init__()
+        self.n_keypoints = int(n_keypoints)
+        self.keypoint_maps = nn.Conv2d(in_channels, self.n_keypoints, 1)
+
+    @staticmethod
+    def cell_centres(h: int, w: int, like: torch.Tensor) -> torch.Tensor:
+        """``[H·W, 2]`` (x, y) of the cell centres in [−1, 1] (row-major), dtype/device of ``like``."""
+        ys = torch.linspace(-1.0, 1.0, h, dtype=like.dtype, device=like.device)
+        xs = torch.linspace(-1.0, 1.0, w, dtype=like.dtype, device=like.device)
+        gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+        return torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=-1)
+
+    def forward(self, feat: torch.Tensor) -> torch.Tensor:
+        maps = self.keypoint_maps(feat)  # [N, K, H, W]
+        n, k, h, w = maps.shape
+        attn = torch.softmax(maps.reshape(n, k, h * w).float(), dim=-1)
+        return (attn @ self.cell_centres(h, w, attn)).reshape(n, 2 * k)
+
+
 class ResNetBackbone(nn.Module):
     """ResNet-18 layout (stem 7×7/2 + max-pool, 4 stages of basic blocks, widths w·[1, 2, 4, 8]) with GroupNorm,
-    global average pooling → [N, 8w]. ``resnet_width=64, resnet_blocks=[2,2,2,2]`` is ResNet-18."""
+    then global average pooling → [N, 8w] (``resnet_pool: avg``) or a spatial softmax → [N, 2K] keypoint
+    coordinates (``resnet_pool: spatial_softmax``, K = ``spatial_softmax_keypoints``; robomimic's ResNet18Conv +
+    SpatialSoftmax). ``resnet_width=64, resnet_blocks=[2,2,2,2]`` is ResNet-18."""
 
     def __init__(self, cfg: EncoderConfig) -> None:
         super().__init__()
@@ -240,7 +268,8 @@ class ResNetBackbone(nn.Module):
             stages.append(nn.Sequential(*blocks))
             c = c_out
         self.stages = nn.Sequential(*stages)
-        self.feature_dim = c
+        self.pool = SpatialSoftmax(c, cfg.spatial_softmax_keypoints) if cfg.resnet_pool == "spatial_softmax" else None
+        self.feature_dim = 2 * cfg.spatial_softmax_keypoints if self.pool is not None else c
         self.pretrained = False
         if cfg.pretrained_path:
             sd = load_weights_file(cfg.pretrained_path)
@@ -256,7 +285,8 @@ class ResNetBackbone(nn.Module):
         self.to(memory_format=self.memory_format)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.stages(self.stem(x.contiguous(memory_format=self.memory_format))).mean(dim=(-2, -1))
+        feat = self.stages(self.stem(x.contiguous(memory_format=self.memory_format)))
+        return feat.mean(dim=(-2, -1)) if self.pool is None else self.pool(feat)
 
 
 def build_backbone(cfg: EncoderConfig, image_size: int, rgb_key: str = "") -> nn.Module:
