@@ -1,14 +1,18 @@
 """Run a policy on a real UR arm (ur-rtde) with a WSG-50 and a UVC camera, or on the simulated UR5e — a Hydra app.
 
-    python eval/deploy_ur.py robot=ur5e checkpoint=PATH out_dir=deploy_runs/try1
+    python eval/deploy_ur.py robot=ur5e checkpoint=PATH out_dir=deploy_runs/try1  # asks before the arm moves
     python eval/deploy_ur.py robot=ur5e policy=reach out_dir=deploy_runs/reach   # scripted reach, no checkpoint
     python eval/deploy_ur.py robot=ur5e checkpoint=PATH dry_run=true            # nothing is sent to the robot
-    python eval/deploy_ur.py robot=sim_ur5e policy=reach out_dir=deploy_runs/sim  # simulated UR5e (MuJoCo)
+    python eval/deploy_ur.py robot=ur5e checkpoint=PATH confirm=true            # scripted: no prompt
+    python eval/deploy_ur.py policy=reach out_dir=deploy_runs/sim              # the default robot: sim_ur5e
     python eval/deploy_ur.py robot=sim_ur5e checkpoint=PATH out_dir=deploy_runs/sim_ckpt
     python eval/deploy_ur.py --cfg job                                          # print the composed config
 
 Writes ``out_dir/{episode.zarr.zip, episode.mp4, tcp_commanded_vs_reached.png, timing.json, deploy_ur.log}``.
-Ctrl-C stops the robot. A safety stop prints one message and exits with status 3. See ``eval/README.md``.
+A real arm (``robot.backend=rtde``) moves only after the operator types ``yes`` at the prompt that shows what
+will move (robot IP, TCP, box, speed limits, current TCP, first target), or with ``confirm=true``.
+Ctrl-C stops the robot. A safety stop prints one message and exits with status 3; a bad config or a refused
+confirmation exits with status 2. See ``eval/README.md``.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ def main(cfg: DictConfig) -> None:
     log_to_file(out_dir / "deploy_ur.log")
     configure_threads(1)
     try:
-        s = run_deploy(c)
+        s = run_deploy(c, ask=_ask_on_terminal)
     except SafetyStop as exc:
         print(f"safety stop (robot halted): {exc}", file=sys.stderr)
         sys.exit(3)
@@ -47,6 +51,22 @@ def main(cfg: DictConfig) -> None:
           f" ms p99 {lat.get('p99_ms', float('nan')):.1f} ms; control period p50 {per.get('p50_ms', float('nan')):.2f}"
           f" ms p99 {per.get('p99_ms', float('nan')):.2f} ms" +
           (f"; final error {1000 * s['final_error_m']:.1f} mm" if "final_error_m" in s else "") + f"; {out_dir}")
+    if s.get("dry_run"):
+        w = s.get("dry_run_would_stop", {})
+        print(f"dry run: nothing was sent; {w.get('n_commands', 0)} would-be command(s) would have stopped the run"
+              + (f" (first in cycle {w['first_cycle']}: {w['reasons'][0]})" if w.get("n_commands") else ""))
+
+
+def _ask_on_terminal(text: str) -> str | None:
+    """Show ``text`` and read the operator's answer; None when stdin is not a terminal (scripted use needs
+    ``confirm=true``)."""
+    if not sys.stdin.isatty():
+        return None
+    print(text, file=sys.stderr)
+    try:
+        return input("Type yes to move the arm: ")
+    except EOFError:
+        return None
 
 
 def _policy_override(argv: list[str]) -> list[str]:

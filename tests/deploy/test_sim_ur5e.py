@@ -19,6 +19,7 @@ from umi_aug.deploy.shared_state import SharedStateBuffer
 from umi_aug.deploy.ur_rtde import STATE_FIELDS
 from umi_aug.errors import DeployError
 from umi_aug.geometry.se3 import pos_rotvec_to_pose, pose_to_pos_rotvec
+from umi_aug.geometry.so3 import so3_log
 
 ROOT = Path(__file__).resolve().parents[2]
 SIM_YAML = ROOT / "configs" / "robot" / "sim_ur5e.yaml"
@@ -55,6 +56,26 @@ def test_model_loads_with_radian_limits_and_ik_round_trip(sim):
     assert np.linalg.norm(sim.data.site_xpos[sim.site] - flange) == pytest.approx(0.235, abs=1e-9)
 
 
+def test_sim_tcp_is_the_ur_controllers_tcp_for_random_joints(sim):
+    """#31 item 7: the simulated TCP pose (base frame) equals UR5e DH forward kinematics to 1 mm (and 1 mrad) for
+    random joints — the frame getActualTCPPose reports on a real UR5e; the shipped joints_init puts the TCP where
+    the config says, inside the box configs/robot/ur5e.yaml uses for the real arm."""
+    from umi_aug.deploy.sim_ur5e import ur5e_fk_dh
+
+    rng = np.random.default_rng(31)
+    for q in rng.uniform(-np.pi, np.pi, (50, 6)):
+        T_sim, T_ur = sim.fk(q), ur5e_fk_dh(q, 0.235)
+        assert np.abs(T_sim[:3, 3] - T_ur[:3, 3]).max() < 1e-3
+        assert np.linalg.norm(so3_log(T_ur[:3, :3].T @ T_sim[:3, :3])) < 1e-3
+    # the issue's example: the same joints gave (0, −0.45, 0.30) in the sim and (0.001, +0.45, 0.298) on the arm
+    q_old = np.deg2rad([-107.3, -98.0, 90.8, -82.8, -90.0, 162.7])
+    assert np.allclose(sim.fk(q_old)[:3, 3], ur5e_fk_dh(q_old, 0.235)[:3, 3], atol=1e-6)
+    assert sim.fk(q_old)[1, 3] > 0.4
+    T0 = ur5e_fk_dh(np.deg2rad(sim_robot_config()["robot"]["joints_init"]), 0.235)
+    real = yaml.safe_load((ROOT / "configs" / "robot" / "ur5e.yaml").read_text())["safety"]
+    assert (np.asarray(real["workspace_min"]) < T0[:3, 3]).all() and (T0[:3, 3] < real["workspace_max"]).all()
+
+
 def test_interpolator_fast_query_matches_reference():
     rng = np.random.default_rng(0)
     poses = np.concatenate([rng.uniform(-0.5, 0.5, (6, 3)), rng.normal(0, 1.2, (6, 3))], 1)
@@ -85,6 +106,7 @@ def _run_loop(cfg_over: dict, waypoints, t_end: float):
     cfg = SimURConfig.from_mapping({**sim_robot_config()["robot"], **cfg_over})
     clock = FakeClock(0.0)
     cmds: queue.Queue = queue.Queue()
+    cmds.put(("enable",))
     for wp in waypoints:
         cmds.put(("waypoint", np.asarray(wp[0], float), float(wp[1])))
     st = SharedStateBuffer(STATE_FIELDS, capacity=int(t_end * 500) + 10)
@@ -119,7 +141,7 @@ def test_servo_loop_follows_waypoints_with_latency_and_speed_limit():
 
 
 def test_unreachable_target_is_a_protective_stop():
-    cfg, loop, s, err = _run_loop({"max_pos_speed": 2.0}, [(np.array([1.5, -0.5, 0.3, np.pi, 0, 0]), 0.2)], 3.0)
+    cfg, loop, s, err = _run_loop({"max_pos_speed": 2.0, "allow_fast_speeds": True}, [(np.array([1.5, -0.5, 0.3, np.pi, 0, 0]), 0.2)], 3.0)
     assert isinstance(err, SafetyStop) and "unreachable" in str(err)
     assert s["timestamp"][-1] < 3.0  # stopped before the end
 
@@ -202,7 +224,7 @@ def test_sim_finger_driver_is_speed_limited_position_control():
 # ------------------------------------------------------------------------------------------- whole runner
 def _deploy_cfg(tmp_path, **kw) -> dict:
     rc = sim_robot_config()
-    rc["safety"]["max_obs_age_s"] = 3.0  # CPU rendering on a loaded 2-core CI machine can lag
+    rc["safety"]["max_obs_age_s"] = 1.0  # the bound (CPU rendering on a loaded 2-core CI machine can lag)
     cfg = {"robot": rc,
            "policy": {"kind": "reach", "target": [0.06, -0.5, 0.27, np.pi - 0.2, 0.0, 0.0], "speed": 0.1,
                       "rot_speed": 0.4, "dt": 0.1, "n_steps": 16, "gripper_width": 0.05},
@@ -232,28 +254,36 @@ def test_sim_reach_closes_the_loop_and_records(tmp_path):
     assert np.abs(img[0].astype(int) - img[-1].astype(int)).mean() > 2  # the view changed as the arm moved
     assert abs(w[-1] - 0.05) < 2e-3  # the gripper went to the commanded width
     t = json.loads((out / "timing.json").read_text())
-    assert t["control_period"]["n"] > 500 and 1.9 < t["control_period"]["p50_ms"] < 4.0
+    assert t["control_period"]["n"] > 500  # (its p50/p99 depend on machine load: reported, not asserted)
     assert t["obs_to_action_latency"]["p50_ms"] >= 100.0  # at least the camera latency
     assert t["sim"]["periods"] > 500 and t["sim"]["camera_frames"] >= s["cycles"]
 
 
 @pytest.mark.slow
 def test_sim_checkpoint_policy_closes_the_loop(tmp_path, tiny_ckpt):
+    """A tiny trained checkpoint drives the simulated arm. Independent of machine load (#31 item 8): the test
+    sets the latency budget itself — ``late_actions: next_slot`` sends one action per cycle however long the CPU
+    inference takes (no age-based drop; the default rule is tested on a fake clock in test_runner.py), a 0.25 s
+    policy step, and the run lasts ``max_duration`` (not a cycle count), so the waypoints of the first cycles
+    have seconds of simulated motion before the halt. Nothing here compares wall-clock durations."""
     from umi_aug.data import ReplayBuffer
     from umi_aug.deploy.app import run_deploy
 
-    cfg = _deploy_cfg(tmp_path, checkpoint=str(tiny_ckpt), n_cycles=3, action_exec_latency=0.3)
+    cfg = _deploy_cfg(tmp_path, checkpoint=str(tiny_ckpt), dt=0.25, steps_per_inference=2, max_duration=4.0,
+                      late_actions="next_slot")
     cfg["policy"] = {"kind": "checkpoint"}
-    # a random-weight policy trained on a synthetic dataset: its absolute poses are anywhere, so the limits are
-    # opened and its steps shrunk to what the sim arm can reach (the loop, not the policy, is under test)
-    cfg["robot"]["safety"].update({"workspace_min": [-2, -2, -2], "workspace_max": [2, 2, 2], "max_step_m": 2.0,
-                                   "max_step_rad": 3.2, "height_threshold": -2.0})
-    cfg["robot"]["robot"].update({"max_pos_speed": 0.02, "max_rot_speed": 0.2, "max_ik_error_m": 1.0})
+    # a random-weight policy trained on a synthetic dataset: its absolute poses are anywhere near the start, so the
+    # limits are opened as far as the bounds allow and its steps shrunk to what the sim arm can reach (the loop,
+    # not the policy, is under test)
+    cfg["robot"]["safety"].update({"workspace_min": [-0.5, -0.8, -0.05], "workspace_max": [0.5, 0.0, 0.55],
+                                   "max_step_m": 0.5, "max_step_rad": np.pi, "height_threshold": -0.1})
+    cfg["robot"]["robot"].update({"max_pos_speed": 0.05, "max_rot_speed": 0.2, "max_ik_error_m": 1.0})
     s = run_deploy(cfg)
-    assert s["cycles"] == 3 and s["policy"] == "Policy" and s["stop_reason"] == "3 cycles done", s
+    assert s["policy"] == "Policy" and s["stop_reason"] == "max_duration 4.0 s reached", s
+    assert s["cycles"] >= 2 and s["late_actions"]["n_hold_cycles"] == 0  # every cycle sent at least one action
     out = tmp_path / "run"
     with ReplayBuffer.open(out / "episode.zarr.zip") as rb:
-        assert rb.n_steps == 3 and rb["action"].shape == (3, 7)
+        assert rb.n_steps == s["cycles"] and rb["action"].shape == (s["cycles"], 7)
         pos = np.asarray(rb["robot0_eef_pos"][:])
     assert np.isfinite(pos).all()
     t = json.loads((out / "timing.json").read_text())

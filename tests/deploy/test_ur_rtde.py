@@ -51,12 +51,13 @@ def clock():
 def _loop(clock, host="fake", n=1000, stale_after=np.inf, **cfg_kw):
     cfg = URConfig.from_mapping({"robot_ip": host, "rtde_modules": FAKE, **cfg_kw})
     cmds: queue.Queue = queue.Queue()
+    cmds.put(("enable",))  # leave the observe-only phase at once
     state = SharedStateBuffer(STATE_FIELDS, 4096)
     return URServoLoop(cfg, cmds, state, _StopAfter(n), _Heartbeat(clock, stale_after), clock), cmds, state
 
 
 def _names():
-    return [c[0] for c in fake_rtde.CALLS]
+    return [c[0] for c in fake_rtde.CALLS if c[0] not in ("receive.__init__", "kickWatchdog")]
 
 
 def test_servol_rate_args_speed_limit_and_clean_stop(clock):
@@ -64,8 +65,10 @@ def test_servol_rate_args_speed_limit_and_clean_stop(clock):
     target = np.array(fake_rtde.POSE0) + [0.15, 0.0, 0.0, 0, 0, 0]
     cmds.put(("waypoint", target, 50.5))  # asks 0.3 m/s; the 0.1 m/s limit stretches it to 1.5 s
     loop.run()
-    assert _names()[:2] == ["control.__init__", "setTcp"] and fake_rtde.CALLS[1][1] == [0, 0, 0.235, 0, 0, 0]
-    assert fake_rtde.CALLS[0][2] == 500.0
+    assert _names()[:3] == ["control.__init__", "setTcp", "setWatchdog"]
+    calls = {c[0]: c for c in fake_rtde.CALLS}
+    assert calls["setWatchdog"][2] == 10.0  # robot.watchdog_min_frequency (ur-rtde's default)
+    assert calls["setTcp"][1] == [0, 0, 0.235, 0, 0, 0] and calls["control.__init__"][2] == 500.0
     servo = [c for c in fake_rtde.CALLS if c[0] == "servoL"]
     assert len(servo) == 1500
     t = np.array([c[1] for c in servo])
@@ -88,7 +91,7 @@ def test_cb3_rate(clock):
     loop, cmds, state = _loop(clock, n=20, robot_type="ur5")
     loop.run()
     t = np.array([c[1] for c in fake_rtde.CALLS if c[0] == "servoL"])
-    assert np.allclose(np.diff(t), 1 / 125) and fake_rtde.CALLS[0][2] == 125.0
+    assert np.allclose(np.diff(t), 1 / 125) and fake_rtde.CALLS[1][:3] == ("control.__init__", "fake", 125.0)
 
 
 def test_exception_in_servol_still_runs_stop_sequence(clock):
@@ -140,12 +143,17 @@ def test_process_backend_protective_stop_and_clean_exit(tmp_path):
     """The real child process (spawn) with the fake module: states flow back, waypoints flow in, a protective
     stop surfaces as one SafetyStop in the parent, and the child ran the stop sequence."""
     log = tmp_path / "calls.jsonl"
-    cfg = URConfig.from_mapping({"robot_ip": f"fake?protective_after=400&log={log}", "rtde_modules": FAKE})
+    # 1 Hz robot-side watchdog: a real-time child on a loaded machine may miss 0.1 s (ur-rtde's default 10 Hz)
+    cfg = URConfig.from_mapping({"robot_ip": f"fake?protective_after=400&log={log}", "rtde_modules": FAKE,
+                                 "watchdog_min_frequency": 1.0})
     robot = URRTDERobot(cfg, connect_timeout_s=60.0)
     try:
         robot.start()
         st = robot.get_states(5)
         assert np.allclose(st["tcp_pose"][-1], fake_rtde.POSE0)
+        with pytest.raises(SafetyStop, match="observe-only"):  # not enabled yet: refused in the runner process
+            robot.schedule_waypoint(np.array(fake_rtde.POSE0), time.monotonic() + 0.2)
+        robot.enable()
         robot.schedule_waypoint(np.array(fake_rtde.POSE0) + [0.02, 0, 0, 0, 0, 0], time.monotonic() + 0.2)
         deadline = time.monotonic() + 30.0
         with pytest.raises(SafetyStop, match="protective stop"):
@@ -162,10 +170,84 @@ def test_process_backend_protective_stop_and_clean_exit(tmp_path):
 
 def test_process_backend_normal_stop(tmp_path):
     log = tmp_path / "calls.jsonl"
-    cfg = URConfig.from_mapping({"robot_ip": f"fake?log={log}", "rtde_modules": FAKE})
+    cfg = URConfig.from_mapping({"robot_ip": f"fake?log={log}", "rtde_modules": FAKE, "watchdog_min_frequency": 1.0})
     robot = URRTDERobot(cfg, connect_timeout_s=60.0)
     robot.start()
     robot.check_ok()
+    robot.enable()
+    assert robot.enabled
     robot.stop()
     robot.stop()  # idempotent
-    assert [c[0] for c in _read_log(log)][-4:] == STOP_SEQ
+    names = [c[0] for c in _read_log(log)]
+    assert names[:3] == ["receive.__init__", "control.__init__", "setTcp"] and names[-4:] == STOP_SEQ
+
+
+def test_process_backend_observe_only_opens_no_control_interface(tmp_path):
+    """Started but never enabled (a dry run, or a refused confirmation): states flow, nothing is sent."""
+    log = tmp_path / "calls.jsonl"
+    cfg = URConfig.from_mapping({"robot_ip": f"fake?log={log}", "rtde_modules": FAKE})
+    robot = URRTDERobot(cfg, connect_timeout_s=60.0)
+    robot.start()
+    try:
+        assert np.allclose(robot.get_states(1)["tcp_pose"][-1], fake_rtde.POSE0) and not robot.enabled
+        robot.check_ok()
+    finally:
+        robot.stop()
+    assert [c[0] for c in _read_log(log)] == ["receive.__init__", "receive.disconnect"]
+
+
+# ------------------------------------------------------------------ #31 item 1: the robot-side watchdog
+def test_every_servo_period_kicks_the_robot_watchdog(clock):
+    loop, cmds, state = _loop(clock, n=200, watchdog_min_frequency=5.0)
+    loop.run()
+    kinds = [c[0] for c in fake_rtde.CALLS if c[0] in ("setWatchdog", "kickWatchdog", "servoL")]
+    assert kinds[0] == "setWatchdog" and [c[2] for c in fake_rtde.CALLS if c[0] == "setWatchdog"] == [5.0]
+    body = kinds[2:]  # setWatchdog + its first kick, then kick → servoL every period
+    assert body == ["kickWatchdog", "servoL"] * 200
+
+
+def test_a_frozen_host_is_stopped_by_the_robot_itself(clock):
+    """The host stops kicking for 0.3 s > 1/5 Hz (frozen before its 100th servoL): the robot's own program has
+    stopped, the late servoL is refused, nothing moved, and the host halts with one message."""
+    loop, cmds, state = _loop(clock, host="fake?stall_after=100:0.3", watchdog_min_frequency=5.0)
+    cmds.put(("waypoint", np.array(fake_rtde.POSE0) + [0.05, 0, 0, 0, 0, 0], 51.0))
+    with pytest.raises(SafetyStop, match=r"servoL was refused by the controller .* robot-side watchdog"):
+        loop.run()
+    names = _names()
+    assert names.count("servoL") == 99 and names.count("servoL refused") == 1 and names[-4:] == STOP_SEQ
+    robot = fake_rtde._ROBOTS["fake?stall_after=100:0.3"]
+    assert robot.side.stop_time == pytest.approx(50.0 + 99 / 500 + 0.2, abs=1e-9)  # last kick + 1/5 Hz
+
+
+def test_killed_host_process_the_robot_stops_within_the_watchdog_period(tmp_path):
+    """SIGKILL of the controller process (the host side; no stop sequence can run): the robot side, applied to the
+    messages the robot received, has stopped its program at most 1/min_frequency after the kill — and it would
+    run on forever without the watchdog (no setWatchdog: stop_time None)."""
+    import os
+    import signal
+
+    log = tmp_path / "calls.jsonl"
+    cfg = URConfig.from_mapping({"robot_ip": f"fake?log={log}", "rtde_modules": FAKE, "watchdog_min_frequency": 1.0})
+    robot = URRTDERobot(cfg, connect_timeout_s=60.0)
+    robot.start()
+    try:
+        robot.enable()
+        robot.schedule_waypoint(np.array(fake_rtde.POSE0) + [0.05, 0, 0, 0, 0, 0], time.monotonic() + 2.0)
+        deadline = time.monotonic() + 60.0
+        while sum(1 for line in open(log) if '"servoL"' in line) < 20:  # servoing towards the waypoint
+            assert time.monotonic() < deadline, "no servoL within 60 s"
+            time.sleep(0.01)
+        pid = robot._proc.pid
+        os.kill(pid, signal.SIGKILL)
+        robot._proc.join(10)
+        t_kill = time.monotonic()
+        assert robot._proc.exitcode == -signal.SIGKILL
+    finally:
+        robot.stop()
+    calls = [json.loads(line) for line in open(log)]
+    assert [c[0] for c in calls if c[0] in ("servoStop", "stopScript")] == []  # the host's stop sequence never ran
+    side = fake_rtde.RobotSide.from_log(log)
+    assert side.min_frequency == 1.0 and side.last_kick <= t_kill
+    assert side.stop_time <= t_kill + 1.0 and not side.running(t_kill + 1.0 + 1e-6)
+    assert side.running(side.last_kick)  # it was servoing until the kicks stopped
+    assert fake_rtde.RobotSide().stop_time is None  # without setWatchdog the program would never stop

@@ -91,6 +91,9 @@ def test_gripper_process_position_control_in_metres():
     g = WSG50Gripper(WSGConfig(gripper_ip="127.0.0.1", gripper_port=srv.port, max_speed=0.2), connect_timeout_s=60)
     g.start()
     try:
+        assert g.get_states(1)["width"][-1] == pytest.approx(0.020)  # observe-only: measured, not homed
+        assert set(srv.ids()) == {0xB0}  # reads only
+        g.enable()
         assert g.get_states(1)["width"][-1] == pytest.approx(0.110)  # homed open
         g.schedule_waypoint(0.05, time.monotonic() + 0.1)
         deadline = time.monotonic() + 20

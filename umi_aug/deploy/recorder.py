@@ -41,9 +41,11 @@ class EpisodeRecorder:
     def on_cycle(self, c: CycleLog) -> None:
         cam = self.camera.get_frames(1)
         g = self.gripper.get_states(1)
+        # a held cycle (nothing sent: every action late, or a stale chunk) records the hold: current pose + width
+        first = c.commands[0] if len(c.commands) else np.concatenate([c.tcp_pose, [g["width"][-1]]])
         self.rows.append({"timestamp": np.float64(c.obs_timestamps[-1]), "camera0_rgb": cam["rgb"][-1],
                           "robot0_eef_pos": c.tcp_pose[:3], "robot0_eef_rot_axis_angle": c.tcp_pose[3:],
-                          "robot0_gripper_width": np.array([g["width"][-1]]), "action": c.commands[0],
+                          "robot0_gripper_width": np.array([g["width"][-1]]), "action": first,
                           "obs_to_action_latency": np.float64(c.obs_to_action_latency)})
         self.commands += [(float(t), a) for t, a in zip(c.action_timestamps, c.commands)]
         self._pull_states()

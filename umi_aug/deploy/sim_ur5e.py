@@ -11,7 +11,9 @@ in its own process like the real backends, so the runner code is the same for si
   (the real arm's response time, which the runner's ``action_latency`` compensates), tracked by joint PD control
   with velocity feed-forward and gravity compensation within the UR5e's joint torque limits. The controller's protective stops are
   mirrored: an unreachable target (IK residual) or a joint tracking error above the limit stop the arm with one
-  message. The robot base frame is the MJCF's base body frame.
+  message. The robot base frame is the UR controller's (``getActualTCPPose``): the MJCF's base turned 180° about
+  z and its link offsets set to the UR5e DH parameters (:func:`ur5e_fk_dh`; checked at load), so a robot config
+  (box, ``joints_init``, reach target) means the same physical pose in simulation and on the arm.
 * **gripper** (:class:`SimGripper`): a two-finger parallel gripper, position controlled, width in metres, its
   fingers move at most ``max_speed``; driven by the WSG-50 process loop (:func:`~umi_aug.deploy.wsg50.
   run_gripper_loop`) through a simulated driver, so it is the WSG-50 interface and timing.
@@ -23,6 +25,9 @@ in its own process like the real backends, so the runner code is the same for si
   umi_policy_image`: gripper mask, centre crop, INTER_AREA). Frames are delivered ``latency`` seconds after the
   state they show and stamped ``receive time − latency`` like the UVC camera. The arm itself is not drawn (it is
   behind the wrist camera; the demo sessions have no arm either).
+
+Every child process dies with the runner, also on SIGKILL (:func:`~umi_aug.deploy.device_process.child_setup`:
+``PR_SET_PDEATHSIG``, plus a parent-alive check every loop period).
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ import collections
 import importlib.util
 import logging
 import multiprocessing as mp
+import os
 import queue
 import threading
 import time
@@ -43,8 +49,9 @@ import numpy as np
 
 from umi_aug.deploy.clock import Clock, MonotonicClock
 from umi_aug.deploy.config_check import reject_unknown_keys
+from umi_aug.deploy.device_process import child_setup, parent_alive, poll_enable
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
-from umi_aug.deploy.safety import SafetyStop
+from umi_aug.deploy.safety import SafetyStop, check_robot_limits
 from umi_aug.deploy.shared_state import SharedStateBuffer
 from umi_aug.deploy.ur_rtde import URRTDERobot, drain_waypoint_commands
 from umi_aug.deploy.wsg50 import WSG50Gripper, run_gripper_loop
@@ -52,7 +59,7 @@ from umi_aug.errors import DeployError
 from umi_aug.geometry.se3 import pos_rotvec_to_pose
 
 __all__ = ["SimURConfig", "SimGripperConfig", "SimCameraConfig", "UR5eSim", "SimServoLoop", "SimUR5eRobot",
-           "SimFingerDriver", "SimGripper", "SimFisheyeCamera", "ur5e_mjcf_path", "base_pose_matrix",
+           "SimFingerDriver", "SimGripper", "SimFisheyeCamera", "ur5e_mjcf_path", "base_pose_matrix", "ur5e_fk_dh",
            "JOINT_NAMES", "TCP_SITE"]
 
 log = logging.getLogger(__name__)
@@ -67,6 +74,53 @@ _IK_MAX_STEP = 0.05  # rad per iteration
 _IK_TOL_POS, _IK_TOL_ROT = 1e-6, 1e-5
 _ARMATURE = 0.1  # kg·m², per joint (UR harmonic drives, ratio ~100, reflect ~0.1 kg·m²)
 _MAX_CATCH_UP = 25  # physics steps one late period may add (50 ms); more is dropped (the sim slows down)
+
+#: UR5e Denavit–Hartenberg parameters (Universal Robots' published kinematics; base → tool0 flange), m / rad.
+UR5E_DH_D = (0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996)
+UR5E_DH_A = (0.0, -0.425, -0.3922, 0.0, 0.0, 0.0)
+UR5E_DH_ALPHA = (np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0)
+_DH_CHECK_TOL_M = 1e-4  # the corrected model must match the DH forward kinematics this closely (m)
+#: the UR controller's base frame is the MJCF's ``base`` body turned 180° about z (wxyz quaternion)
+_BASE_QUAT_UR = (0.0, 0.0, 0.0, 1.0)
+
+
+def ur5e_fk_dh(q: np.ndarray, tcp_offset: float = 0.0) -> np.ndarray:
+    """UR5e forward kinematics from the DH parameters: ``T_base_tcp`` [4, 4] in the UR controller's base frame
+    (what ``getActualTCPPose`` reports) for joints ``q`` [6] (rad), the TCP ``tcp_offset`` m along the flange
+    z axis (``setTcp([0, 0, tcp_offset, 0, 0, 0])``)."""
+    T = np.eye(4)
+    for qi, d, a, al in zip(np.asarray(q, float), UR5E_DH_D, UR5E_DH_A, UR5E_DH_ALPHA):
+        ct, st, ca, sa = np.cos(qi), np.sin(qi), np.cos(al), np.sin(al)
+        T = T @ np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0.0, sa, ca, d],
+                          [0.0, 0.0, 0.0, 1.0]])
+    tcp = np.eye(4)
+    tcp[2, 3] = float(tcp_offset)
+    return T @ tcp
+
+
+def _to_ur_kinematics(spec: Any) -> None:
+    """Make robosuite's UR5e MJCF the UR controller's kinematics: its base turned 180° about z (MuJoCo's world =
+    the UR base frame) and its link offsets set to the DH values (robosuite's differ by up to 2 mm: shoulder
+    0.163 m — the base is lowered 0.5 mm instead —, wrist 0.392 / 0.1 / 0.098 m, wrist offsets summing to
+    0.134 m). Bodies missing in another MJCF are
+    left alone; :class:`UR5eSim` then checks the result against :func:`ur5e_fk_dh`."""
+    base, shoulder = spec.body("base"), spec.body("shoulder_link")
+    if base is not None:
+        base.quat = list(_BASE_QUAT_UR)
+        if shoulder is not None:  # shoulder height d1: the whole arm moves (lowering the shoulder link inside its
+            # base would make their collision geoms touch and brake the shoulder pan joint)
+            base.pos = [float(base.pos[0]), float(base.pos[1]), UR5E_DH_D[0] - float(shoulder.pos[2])]
+    up, fore = spec.body("upper_arm_link"), spec.body("forearm_link")
+    fixes = {"forearm_link": lambda p: [p[0], p[1], -UR5E_DH_A[1]],
+             "wrist_1_link": lambda p: [p[0], p[1], -UR5E_DH_A[2]],
+             "wrist_3_link": lambda p: [p[0], p[1], UR5E_DH_D[4]],
+             FLANGE_BODY: lambda p: [p[0], UR5E_DH_D[5], p[2]]}
+    if up is not None and fore is not None:  # the y offsets of upper arm, forearm and wrist 2 sum to d4
+        fixes["wrist_2_link"] = lambda p: [p[0], UR5E_DH_D[3] - float(up.pos[1]) - float(fore.pos[1]), p[2]]
+    for name, fix in fixes.items():
+        b = spec.body(name)
+        if b is not None:
+            b.pos = fix([float(v) for v in b.pos])
 
 
 def ur5e_mjcf_path(path: str | None = None) -> Path:
@@ -124,7 +178,9 @@ class SimURConfig:
         joints_init: start joint angles (deg). base_pose: ``[x, y, z, yaw_deg]`` of the base in the scene.
         response_latency: the arm follows the servo target this much later (s; the real arm's response, which
             ``action_latency`` compensates; 0 = immediately).
-        max_joint_speed: joint target speed limit (rad/s; the UR5e's 180°/s).
+        max_joint_speed: joint target speed limit (rad/s; at most the UR5e's 180°/s).
+        allow_fast_speeds: as :class:`~umi_aug.deploy.ur_rtde.URConfig` (speed bounds of UMI's eval instead of
+            UR's defaults).
         kp: joint PD stiffness per joint (N·m/rad); damping is critical for the link inertia (``kd_ratio``).
         max_tracking_error_rad: joint tracking error that triggers the protective stop.
         max_ik_error_m: IK residual (m) that, held for ``unreachable_s``, triggers the protective stop.
@@ -138,7 +194,7 @@ class SimURConfig:
     max_pos_speed: float = 0.25
     max_rot_speed: float = 0.6
     watchdog_s: float = 1.0
-    joints_init: list[float] = field(default_factory=lambda: [-107.3, -98.0, 90.8, -82.8, -90.0, 162.7])
+    joints_init: list[float] = field(default_factory=lambda: [72.77, -97.94, 90.45, -82.5, -90.0, 162.77])
     base_pose: list[float] = field(default_factory=lambda: [0.0, -0.35, 0.0, 180.0])
     kp: list[float] = field(default_factory=lambda: [3000.0, 3000.0, 2000.0, 400.0, 400.0, 200.0])
     kd_ratio: float = 1.0
@@ -148,6 +204,7 @@ class SimURConfig:
     max_ik_error_m: float = 0.005
     unreachable_s: float = 0.1
     model: str | None = None
+    allow_fast_speeds: bool = False
 
     @property
     def frequency(self) -> float:
@@ -159,8 +216,9 @@ class SimURConfig:
         c = cls(**{k: (list(v) if isinstance(v, (list, tuple)) else v) for k, v in m.items()})
         if c.robot_type != "ur5e":
             raise DeployError(f"{where}.robot_type={c.robot_type!r}; the simulation has the 'ur5e' only")
-        _positive(where, c, ("action_latency", "max_pos_speed", "max_rot_speed", "watchdog_s", "kd_ratio",
-                             "max_joint_speed", "max_tracking_error_rad", "max_ik_error_m", "unreachable_s"))
+        _positive(where, c, ("action_latency", "kd_ratio", "max_tracking_error_rad", "max_ik_error_m",
+                             "unreachable_s"))
+        check_robot_limits(c, where)
         if not 0 <= c.tcp_offset < 0.5:
             raise DeployError(f"{where}.tcp_offset={c.tcp_offset} m must be in [0, 0.5)")
         if not 0 <= c.response_latency <= 1.0:
@@ -193,6 +251,7 @@ class UR5eSim:
             if flange is None:
                 raise DeployError(f"robot.model={str(path)!r}: no body {FLANGE_BODY!r} (the UR5e tool flange)")
             flange.add_site(name=TCP_SITE, pos=[0.0, 0.0, float(cfg.tcp_offset)])
+            _to_ur_kinematics(spec)
             for name in JOINT_NAMES:  # reflected motor/gearbox inertia (the MJCF has none): keeps PD stable
                 j = spec.joint(name)
                 if j is not None:
@@ -217,6 +276,15 @@ class UR5eSim:
         self.kd_ratio = float(cfg.kd_ratio)
         self.dt = float(m.opt.timestep)
         self._jacp, self._jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        self._check_against_dh(str(path), float(cfg.tcp_offset))
+
+    def _check_against_dh(self, path: str, tcp_offset: float) -> None:
+        """The TCP of the model at a few fixed joint sets equals the UR5e DH forward kinematics (m)."""
+        qs = np.random.default_rng(0).uniform(-np.pi, np.pi, (8, 6))
+        err = max(float(np.abs(self.fk(q)[:3, 3] - ur5e_fk_dh(q, tcp_offset)[:3, 3]).max()) for q in qs)
+        if err > _DH_CHECK_TOL_M:
+            raise DeployError(f"robot.model={path!r}: its TCP differs from the UR5e DH kinematics by {1000 * err:.1f} "
+                              f"mm (the simulation must use the UR controller's base frame and link lengths)")
 
     # ------------------------------------------------------------------ state
     def reset(self, q: np.ndarray) -> None:
@@ -299,15 +367,20 @@ class SimServoLoop:
     in-thread with a fake clock).
 
     Args:
-        cfg: :class:`SimURConfig`. commands: queue of ``("waypoint", pose[6], t)`` / ``("stop",)``.
+        cfg: :class:`SimURConfig`. commands: queue of ``("enable",)`` / ``("waypoint", pose[6], t)`` /
+            ``("stop",)``; before ``enable`` the arm stands at ``joints_init`` (observe-only, as the real
+            controller before its control interface is opened) and a waypoint is an error.
         state: ring buffer with :data:`~umi_aug.deploy.ur_rtde.STATE_FIELDS`. stop_event: set → leave.
         heartbeat: shared double, the runner's last heartbeat. clock: time base (``time.monotonic``).
+        enabled: shared int set to 1 on ``enable``. parent_pid: the runner's pid (None: not checked).
     """
 
     def __init__(self, cfg: SimURConfig, commands: Any, state: SharedStateBuffer, stop_event: Any, heartbeat: Any,
-                 clock: Clock | None = None, stats: Any = None) -> None:
+                 clock: Clock | None = None, stats: Any = None, enabled: Any = None,
+                 parent_pid: int | None = None) -> None:
         self.cfg, self.commands, self.state, self.stop_event = cfg, commands, state, stop_event
         self.heartbeat = heartbeat
+        self.enabled, self.parent_pid = enabled, parent_pid
         self.clock = clock or MonotonicClock()
         self.n_periods = 0
         self.n_physics_steps = 0
@@ -326,12 +399,15 @@ class SimServoLoop:
         last_wp: float | None = None
         t_bad: float | None = None
         delayed: collections.deque = collections.deque()
+        armed = False
         while not self.stop_event.is_set():
             t_now = t_period = self.clock.now()
             age = t_now - float(self.heartbeat.value)
             if age > cfg.watchdog_s:
                 raise SafetyStop(f"watchdog: no heartbeat from the runner for {age:.2f} s > robot.watchdog_s="
                                  f"{cfg.watchdog_s}")
+            if not parent_alive(self.parent_pid):
+                raise SafetyStop(f"the runner process {self.parent_pid} died")
             pose = interp(t_now)
             delayed.append((t_now, pose))  # the arm acts on the servo target response_latency later
             while len(delayed) > 1 and delayed[1][0] <= t_now - cfg.response_latency:
@@ -363,8 +439,15 @@ class SimServoLoop:
                                  f"robot.max_tracking_error_rad={cfg.max_tracking_error_rad}")
             self.state.put({"timestamp": self.clock.now() - cfg.obs_latency, "tcp_pose": sim.tcp_pose(),
                             "tcp_speed": sim.tcp_speed(), "q": sim.q, "qd": sim.qd, "target_pose": pose})
-            interp, last_wp, stop = drain_waypoint_commands(self.commands, interp, last_wp, t_now + dt,
-                                                            cfg.max_pos_speed, cfg.max_rot_speed)
+            stop = False
+            if not armed:
+                cmd = poll_enable(self.commands)
+                stop, armed = cmd == "stop", cmd == "enable"
+                if armed and self.enabled is not None:
+                    self.enabled.value = 1
+            if armed and not stop:
+                interp, last_wp, stop = drain_waypoint_commands(self.commands, interp, last_wp, t_now + dt,
+                                                                cfg.max_pos_speed, cfg.max_rot_speed)
             if stop:
                 return
             self.n_periods += 1
@@ -374,9 +457,11 @@ class SimServoLoop:
 
 
 def _sim_robot_main(cfg: SimURConfig, heartbeat: Any, commands: Any, state: SharedStateBuffer, stop_event: Any,
-                    errors: Any) -> None:
+                    errors: Any, enabled: Any, parent_pid: int) -> None:
+    child_setup(parent_pid)
     try:
-        SimServoLoop(cfg, commands, state, stop_event, heartbeat, stats=getattr(cfg, "_stats", None)).run()
+        SimServoLoop(cfg, commands, state, stop_event, heartbeat, stats=getattr(cfg, "_stats", None),
+                     enabled=enabled, parent_pid=parent_pid).run()
     except BaseException as exc:  # noqa: BLE001 - reported to the runner
         errors.put(str(exc) if isinstance(exc, DeployError) else f"{type(exc).__name__}: {exc}")
 
@@ -469,9 +554,10 @@ class SimFingerDriver:
 
 
 def _sim_gripper_main(cfg: SimGripperConfig, commands: Any, state: SharedStateBuffer, stop_event: Any,
-                      errors: Any) -> None:
+                      errors: Any, enabled: Any, parent_pid: int) -> None:
+    child_setup(parent_pid)
     try:
-        run_gripper_loop(SimFingerDriver(cfg), cfg, commands, state, stop_event)
+        run_gripper_loop(SimFingerDriver(cfg), cfg, commands, state, stop_event, enabled, parent_pid)
     except BaseException as exc:  # noqa: BLE001 - reported to the runner
         errors.put(f"{type(exc).__name__}: {exc}")
 
@@ -524,7 +610,9 @@ class SimCameraConfig:
 
 
 def _camera_main(cfg: SimCameraConfig, T_world_base: np.ndarray, robot_state: SharedStateBuffer,
-                 gripper_state: SharedStateBuffer, frames: Any, stop_event: Any, errors: Any) -> None:
+                 gripper_state: SharedStateBuffer, frames: Any, stop_event: Any, errors: Any,
+                 parent_pid: int) -> None:
+    child_setup(parent_pid)
     try:
         from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
         from umi_aug.camera.umi_image import umi_policy_image
@@ -543,6 +631,8 @@ def _camera_main(cfg: SimCameraConfig, T_world_base: np.ndarray, robot_state: Sh
         with FisheyeRenderer(model, intr, options=RasterOptions(near=SCENE_NEAR, far=SCENE_FAR)) as renderer:
             t_next = time.monotonic()
             while not stop_event.is_set():
+                if not parent_alive(parent_pid):
+                    raise SafetyStop(f"the runner process {parent_pid} died")
                 now = time.monotonic()
                 if now >= t_next:
                     tcp = robot_state.latest(1)["tcp_pose"][-1]
@@ -594,7 +684,7 @@ class SimFisheyeCamera:
         self._q, self._errors, self._stop = self._ctx.Queue(), self._ctx.Queue(), self._ctx.Event()
         self._proc = self._ctx.Process(target=_camera_main, name="sim_camera", daemon=True,
                                        args=(self.cfg, self.T_world_base, self._robot_state, self._gripper_state,
-                                             self._q, self._stop, self._errors))
+                                             self._q, self._stop, self._errors, os.getpid()))
         self._proc.start()
         self._thread = threading.Thread(target=self._receive, name="sim_camera_rx", daemon=True)
         self._thread.start()

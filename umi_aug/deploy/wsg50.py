@@ -21,8 +21,9 @@ import time
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from umi_aug.deploy.device_process import DeviceProcess
+from umi_aug.deploy.device_process import DeviceProcess, child_setup, parent_alive, poll_enable
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
+from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
 from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
@@ -200,12 +201,13 @@ class WSG50Driver:
         """Track ``position_mm`` with feed-forward ``velocity_mm_s`` (UMI's 0xB1 gains and 80 N limit)."""
         return self._script(CMD_SCRIPT_POSITION_PD, position_mm, velocity_mm_s, kp, kd, force_limit_n, force_limit_n)
 
-    def close(self) -> None:
-        """Stop the fingers (reply read), say goodbye (no reply), close the socket; never raises."""
+    def close(self, stop_fingers: bool = True) -> None:
+        """Stop the fingers (reply read; skipped when ``stop_fingers`` is False: nothing was commanded), say
+        goodbye (0x07, no reply), close the socket; never raises."""
         if self.sock is None:
             return
-        for cmd, fn in ((CMD_STOP, lambda: self.command(CMD_STOP, wait=False)),
-                        (CMD_DISCONNECT, lambda: self.send(CMD_DISCONNECT))):
+        steps = [(CMD_STOP, lambda: self.command(CMD_STOP, wait=False))] if stop_fingers else []
+        for cmd, fn in steps + [(CMD_DISCONNECT, lambda: self.send(CMD_DISCONNECT))]:
             try:
                 fn()
             except DeployError as exc:
@@ -236,53 +238,93 @@ class WSGConfig:
         return c
 
 
-def run_gripper_loop(drv: Any, cfg: Any, commands: Any, state: SharedStateBuffer, stop_event: Any) -> None:
-    """The gripper control loop (UMI's ``WSGController``) on a connected driver: every ``1/cfg.frequency`` s
-    track the width interpolator (position + feed-forward velocity, ``position_pd``), push the measured state
-    (``timestamp = receive time − obs_latency``) and drain scheduled waypoints. ``drv`` has the
+def run_gripper_loop(drv: Any, cfg: Any, commands: Any, state: SharedStateBuffer, stop_event: Any,
+                     enabled: Any = None, parent_pid: int | None = None) -> None:
+    """The gripper control loop (UMI's ``WSGController``) on a connected driver, every ``1/cfg.frequency`` s.
+
+    Observe-only until an ``("enable",)`` command: only ``measure`` (a read) and the state is published. Then
+    ``ack_fault``, ``homing`` when ``cfg.home_to_open``, ``enabled.value = 1`` and, every period, track the width
+    interpolator (position + feed-forward velocity, ``position_pd``), push the measured state (``timestamp =
+    receive time − obs_latency``) and drain scheduled ``("waypoint", width_m, t)`` commands. ``drv`` has the
     :class:`WSG50Driver` methods ``ack_fault``, ``homing``, ``measure``, ``position_pd`` (millimetres); the
-    simulated gripper (:mod:`umi_aug.deploy.sim_ur5e`) passes its own."""
+    simulated gripper (:mod:`umi_aug.deploy.sim_ur5e`) passes its own. The loop ends on ``stop_event`` or a
+    ``("stop",)`` command, or with :class:`~umi_aug.deploy.safety.SafetyStop` when ``parent_pid`` is no longer
+    this process's parent."""
+    dt = 1.0 / cfg.frequency
+
+    def publish(info: dict[str, float], target: float) -> None:
+        state.put({"timestamp": time.monotonic() - cfg.obs_latency, "width": info["position"] / 1000.0,
+                   "velocity": info["velocity"] / 1000.0, "force": info["force"], "target": target})
+
+    def check_parent() -> None:
+        if not parent_alive(parent_pid):
+            raise SafetyStop(f"the runner process {parent_pid} died")
+
+    t_next = time.monotonic()
+    while True:  # observe-only
+        if stop_event.is_set():
+            return
+        check_parent()
+        cmd = poll_enable(commands)
+        if cmd == "stop":
+            return
+        if cmd == "enable":
+            break
+        info = drv.measure()
+        publish(info, info["position"] / 1000.0)
+        t_next += dt
+        time.sleep(max(0.0, t_next - time.monotonic()))
     drv.ack_fault()
     if cfg.home_to_open:
         drv.homing(True)
-    dt = 1.0 / cfg.frequency
-    w0 = drv.measure()["position"] / 1000.0
+    info = drv.measure()
+    w0 = info["position"] / 1000.0
+    publish(info, w0)
     interp = PoseTrajectoryInterpolator([time.monotonic()], [[w0, 0, 0, 0, 0, 0]])
     last_wp = None
+    if enabled is not None:
+        enabled.value = 1
     t_start, it = time.monotonic(), 0
     while not stop_event.is_set():
+        check_parent()
         t_now = time.monotonic()
         w = float(interp(t_now + dt)[0])
         v = (w - float(interp(t_now)[0])) / dt
-        info = drv.position_pd(w * 1000.0, v * 1000.0)
-        state.put({"timestamp": time.monotonic() - cfg.obs_latency, "width": info["position"] / 1000.0,
-                   "velocity": info["velocity"] / 1000.0, "force": info["force"], "target": w})
+        publish(drv.position_pd(w * 1000.0, v * 1000.0), w)
         while True:
             try:
-                _, width, t_wp = commands.get_nowait()
+                cmd = commands.get_nowait()
             except queue.Empty:
                 break
+            if cmd[0] == "stop":
+                return
+            if cmd[0] != "waypoint":
+                continue
+            _, width, t_wp = cmd
             interp = interp.schedule_waypoint([width, 0, 0, 0, 0, 0], t_wp, cfg.max_speed, 1.0, t_now, last_wp)
             last_wp = t_wp
         it += 1
         time.sleep(max(0.0, t_start + it * dt - time.monotonic()))
 
 
-def _gripper_main(cfg: WSGConfig, commands: Any, state: SharedStateBuffer, stop_event: Any, errors: Any) -> None:
+def _gripper_main(cfg: WSGConfig, commands: Any, state: SharedStateBuffer, stop_event: Any, errors: Any,
+                  enabled: Any, parent_pid: int) -> None:
+    child_setup(parent_pid)
     drv = WSG50Driver(cfg.gripper_ip, cfg.gripper_port)
     try:
         drv.connect()
-        run_gripper_loop(drv, cfg, commands, state, stop_event)
+        run_gripper_loop(drv, cfg, commands, state, stop_event, enabled, parent_pid)
     except BaseException as exc:  # noqa: BLE001 - reported to the runner
         errors.put(str(exc))
     finally:
-        drv.close()
+        drv.close(stop_fingers=bool(enabled.value))  # observe-only: no command, only the goodbye
 
 
 class WSG50Gripper(DeviceProcess):
     """:class:`~umi_aug.deploy.interfaces.GripperInterface` for a WSG-50 (own process, ``frequency`` Hz)."""
 
-    #: the child's entry point ``main(cfg, commands, state, stop_event, errors)`` (the simulated gripper of
+    #: the child's entry point ``main(cfg, commands, state, stop_event, errors, enabled, parent_pid)`` (the
+    #: simulated gripper of
     #: :mod:`umi_aug.deploy.sim_ur5e` swaps in its own driver; the loop is :func:`run_gripper_loop` for both)
     process_main = staticmethod(_gripper_main)
 
@@ -295,4 +337,6 @@ class WSG50Gripper(DeviceProcess):
         self._start_process(self.process_main, self.cfg)
 
     def schedule_waypoint(self, width: float, t: float) -> None:
+        """Queue jaw opening ``width`` (m) at ``t`` (s); refused before :meth:`enable` (observe-only)."""
+        self._require_enabled("waypoint")
         self._cmd.put(("waypoint", float(width), float(t)))
