@@ -142,7 +142,7 @@ def _create_store(path: Path, assets: SessionAssets, key: str, n_jobs: int) -> N
             "aug_job": np.full(E, -1)}
     for k, dt in RECORD_KEYS.items():
         buf.meta.array(k, np.asarray(init[k], dtype=dt), chunks=(RECORD_CHUNK,), compressor=None)
-    _set_image_effort(buf, cfg.jpegxl_effort)
+    _set_umi_image_codec(buf, cfg.jpegxl_effort)
     buf.root.attrs[ATTR] = {"key": key, "n_jobs": n_jobs, "n_original": E, "last_job_done": -1, "failures": [],
                             "modes": MODE_CODES, "format": "umi_aug export v1: meta/aug_* per episode"}
     buf.save(path)
@@ -150,27 +150,50 @@ def _create_store(path: Path, assets: SessionAssets, key: str, n_jobs: int) -> N
 
 #: JPEG-XL codec parameters that only steer the encoder: chunks written with any value decode alike.
 ENCODER_ONLY_JPEGXL_KEYS: frozenset[str] = frozenset({"effort"})
+#: Frames read at once when an image array of another codec is re-encoded with UMI's JPEG-XL (~38 MB at 224²).
+REENCODE_BLOCK = 256
 
 
-def _set_image_effort(buf, effort: int | None) -> None:
-    """Give the image array's JPEG-XL codec config ``effort`` (the encoder setting of every frame written from now
-    on, by zarr's own write and by :mod:`umi_aug.augment.encode` alike); the chunks already stored are left as they
-    are (decoding does not depend on the effort). No-op for ``None``, a non-JPEG-XL codec or the same effort."""
+def _set_umi_image_codec(buf, effort: int | None) -> None:
+    """Make every ``camera*_rgb`` array of ``buf`` store UMI's exact 12-key JPEG-XL codec config (``id`` + the 11
+    parameters of UMI's ``JpegXl``; :func:`umi_aug.data.codecs.umi_image_codec_from`), whatever the source wrote:
+
+    * a JPEG-XL config with other keys (newer imagecodecs' ``bitspersample``, ``squeeze``, ...) is rewritten in the
+      array's ``.zarray`` (the stored chunks decode alike: those keys do not change the bitstream), with ``effort``
+      (the encoder setting of every frame written from now on) when given;
+    * an array of another codec (Blosc, uncompressed, ...) is re-encoded with UMI's ``JpegXl(level=99)``, in blocks
+      of :data:`REENCODE_BLOCK` frames, one frame per chunk (lossy, as UMI's own images).
+
+    UMI's reader rebuilds the codec as ``JpegXl(**config)``, so any key beyond its 11 parameters fails there."""
     from zarr.util import json_dumps
 
-    from umi_aug.data.codecs import JPEGXL_CODEC_ID
+    from umi_aug.data import schema
+    from umi_aug.data.codecs import JPEGXL_CODEC_ID, umi_image_codec_from
 
-    if effort is None or IMAGE_KEY not in buf:
-        return
-    arr = buf[IMAGE_KEY]
-    comp = arr.compressor
-    if comp is None or comp.codec_id != JPEGXL_CODEC_ID or comp.get_config().get("effort") == effort:
-        return
-    key = f"{arr.path}/.zarray"
-    meta = json.loads(arr.store[key])
-    meta["compressor"] = {**comp.get_config(), "effort": int(effort)}
-    arr.store[key] = json_dumps(meta)
-    buf._invalidate()
+    changed = False
+    for key in [k for k in buf.keys() if schema.is_image_key(k)]:
+        arr = buf[key]
+        zkey = f"{arr.path}/.zarray"
+        meta = json.loads(arr.store[zkey])
+        stored = meta.get("compressor")
+        codec = umi_image_codec_from(stored, effort)
+        if stored is not None and stored.get("id") == JPEGXL_CODEC_ID and not meta.get("filters"):
+            if stored != codec.get_config():
+                meta["compressor"] = codec.get_config()
+                arr.store[zkey] = json_dumps(meta)
+                changed = True
+            continue
+        log.info("export: %s frames stored with codec %s are re-encoded with UMI's JPEG-XL", key,
+                 None if stored is None else stored.get("id"))
+        tmp = f"{key}.umi_aug_reencode"
+        dst = buf.data.zeros(tmp, shape=arr.shape, chunks=(1,) + arr.shape[1:], dtype=arr.dtype, compressor=codec)
+        for s in range(0, arr.shape[0], REENCODE_BLOCK):
+            dst[s:s + REENCODE_BLOCK] = arr[s:s + REENCODE_BLOCK]
+        del buf.data[key]
+        buf.data.move(tmp, key)
+        changed = True
+    if changed:
+        buf._invalidate()
 
 
 def _open_store(path: Path, key: str):

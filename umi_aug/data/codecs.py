@@ -124,6 +124,25 @@ def umi_image_compressor() -> UmiJpegXl:
     return UmiJpegXl(level=UMI_JPEGXL_LEVEL, numthreads=1)
 
 
+def umi_image_codec_from(config: dict[str, Any] | None, effort: int | None = None) -> UmiJpegXl:
+    """The codec an export's ``camera*_rgb`` array is written with: UMI's JPEG-XL, whose stored config is exactly
+    UMI's 12 keys (``id`` + :data:`UMI_JPEGXL_PARAMS`) whatever ``config`` carried.
+
+    Args:
+        config: a source array's stored compressor config (``.zarray`` ``"compressor"``) or None. A JPEG-XL config
+            keeps its values for UMI's keys and drops every other key (``bitspersample``, ``squeeze``, ...); any
+            other codec (or None) gives :func:`umi_image_compressor`.
+        effort: libjxl encoder effort to store (1..9); None keeps the source's (or UMI's default, None).
+    """
+    if config is not None and config.get("id") == JPEGXL_CODEC_ID:
+        codec = UmiJpegXl.from_config(config)
+    else:
+        codec = umi_image_compressor()
+    if effort is not None:
+        codec.effort = int(effort)
+    return codec
+
+
 def umi_lowdim_compressor() -> None:
     """The compressor UMI's 07 script uses for low-dimensional arrays: none (stored uncompressed)."""
     return None

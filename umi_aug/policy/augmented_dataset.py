@@ -285,8 +285,14 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
     def fit_normalizer(self, n_episodes: int = NORMALIZER_EPISODES) -> LinearNormalizer:
         """UMI's normaliser over the original samples plus every step of ``n_episodes`` planned (not rendered)
         augmented episodes, so the ranges cover the augmented starts."""
+        return self.normalizer_dataset(n_episodes).fit_normalizer()
+
+    def normalizer_dataset(self, n_episodes: int = NORMALIZER_EPISODES) -> UmiPolicyDataset:
+        """The samples the normaliser is fitted on, as a dataset (low-dim only: :meth:`UmiPolicyDataset.lowdim_batch`):
+        the original training split plus every step of ``n_episodes`` planned (not rendered) augmented episodes
+        (the original split itself when nothing is augmented or no episode could be planned)."""
         if self.n_augmented == 0:
-            return self.original.fit_normalizer()
+            return self.original
         extra = copy.copy(self.original)
         pose6, grip, start = list(extra.pose6[0:1]), list(extra.gripper[0:1]), list(extra.start_pose[0:1])
         act = list(extra.action7[0:1]) if extra.action7 is not None else None
@@ -307,7 +313,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             ends.append(base)
             rows.append(len(ends) - 1)
         if not rows:
-            return self.original.fit_normalizer()
+            return self.original
         extra.pose6 = [np.concatenate(pose6)]
         extra.gripper = [np.concatenate(grip)]
         if act is not None:
@@ -322,4 +328,4 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         extra.val_mask[: len(self.original.val_mask)] = self.original.val_mask
         extra.split = "train"
         extra._build_indices()
-        return extra.fit_normalizer()
+        return extra
