@@ -178,6 +178,41 @@ def test_lost_connection_stops():
     assert len(r.cycles) == 3  # the cycle during which it dropped completes; the next one refuses
 
 
+def _raise_in_cycle(pol, n: int, exc: BaseException) -> None:
+    """Make ``pol.predict_action`` raise ``exc`` in inference cycle ``n`` (0-based)."""
+    orig = pol.predict_action
+
+    def predict(obs):
+        if len(pol.seen) == n:
+            pol.seen.append(obs)
+            raise exc
+        return orig(obs)
+
+    pol.predict_action = predict
+
+
+def test_policy_exception_halts_robot_and_gripper():
+    """Already safe before #31 (docs/deploy_safety.md): an exception inside the policy propagates after robot,
+    gripper and camera are stopped; nothing is scheduled in the failing cycle."""
+    r, clock, robot, grip, cam, pol = make()
+    _raise_in_cycle(pol, 2, RuntimeError("CUDA error: device-side assert triggered"))
+    with pytest.raises(RuntimeError, match="CUDA error"):
+        r.run(n_cycles=5)
+    assert robot.stopped == 1 and grip.stopped == 1 and cam.stopped == 1
+    assert len(r.cycles) == 2 and len(robot.scheduled) == sum(len(c.commands) for c in r.cycles) > 0  # good ones
+    assert r.stop_reason == "CUDA error: device-side assert triggered"
+
+
+def test_ctrl_c_halts_robot_and_gripper():
+    """Already safe before #31: Ctrl-C (KeyboardInterrupt in the runner) ends the run normally after the halt, with
+    its reason recorded (the device children ignore SIGINT and run their own stop sequence when stopped)."""
+    r, clock, robot, grip, cam, pol = make()
+    _raise_in_cycle(pol, 1, KeyboardInterrupt())
+    logs = r.run(n_cycles=5)
+    assert len(logs) == 1 and robot.stopped == 1 and grip.stopped == 1 and cam.stopped == 1
+    assert r.stop_reason == "stopped by the user (Ctrl-C)"
+
+
 def test_max_step_and_table_clamp():
     lim = SafetyLimits(max_step_m=0.05, height_threshold=0.0)
     cur = POSE0.copy()

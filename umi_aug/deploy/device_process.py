@@ -8,8 +8,8 @@ which a real arm gets only after the operator's confirmation (:mod:`umi_aug.depl
 
 No child outlives the runner: each child's entry point calls :func:`child_setup` first, which asks the kernel to
 SIGKILL it when the runner dies (``PR_SET_PDEATHSIG``, the augment workers' :func:`~umi_aug.augment.executor.
-die_with_parent`), and the loops call :func:`parent_alive` every period (a check that does not depend on the
-signal)."""
+die_with_parent`; the simulated arm asks for SIGTERM instead and decelerates to rest before it exits), and the
+loops call :func:`parent_alive` every period (a check that does not depend on the signal)."""
 
 from __future__ import annotations
 
@@ -30,14 +30,27 @@ __all__ = ["DeviceProcess", "child_setup", "parent_alive", "poll_enable"]
 log = logging.getLogger(__name__)
 
 
-def child_setup(parent_pid: int) -> None:
-    """First call of every device child: die with the runner (SIGKILL on the parent's death, or exit now if it is
-    already gone; Linux) and leave SIGINT to the runner (a Ctrl-C reaches the whole process group; the runner
-    stops its children in order, each running its own stop sequence)."""
-    from umi_aug.augment.executor import die_with_parent
+def child_setup(parent_pid: int, death_signal: int = signal.SIGKILL) -> None:
+    """First call of every device child: die with the runner (``death_signal`` on the parent's death, or exit now
+    if it is already gone; Linux) and leave SIGINT to the runner (a Ctrl-C reaches the whole process group; the
+    runner stops its children in order, each running its own stop sequence).
+
+    Args:
+        parent_pid: the runner's pid.
+        death_signal: the signal the kernel sends this process when the runner dies. SIGKILL (default) for
+            children that have nothing to wind down; the simulated arm asks for SIGTERM and handles it by
+            decelerating to rest first (:func:`umi_aug.deploy.sim_ur5e.stop_on_signal`, with a SIGALRM backstop),
+            as the real arm's own program does when ur-rtde's watchdog fires.
+    """
+    from umi_aug.augment.executor import PR_SET_PDEATHSIG, die_with_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    die_with_parent(parent_pid)
+    if die_with_parent(parent_pid) and death_signal != signal.SIGKILL:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(death_signal), 0, 0, 0)
+        if os.getppid() != parent_pid:  # the runner died between the two prctl calls
+            os._exit(1)
 
 
 def parent_alive(parent_pid: int | None) -> bool:

@@ -43,6 +43,11 @@ BOUNDS: dict[str, tuple[float, float, str]] = {
     "watchdog_min_frequency": (1.0, 50.0, "Hz; ur-rtde setWatchdog: ≥ 1 Hz = the robot stops within 1 s of the "
                                           "last kick; ≤ 50 Hz so one late 500 Hz period cannot trip it"),
     "max_joint_speed": (0.0, math.pi, "rad/s; the UR5e's joint speed limit, 180°/s (datasheet)"),
+    "stop_deceleration": (1.0, 20.0, "m/s²; the simulated arm's stop, as ur-rtde servoStop(a), default 10 m/s²: "
+                                     "≥ 1 m/s² stops a 1 m/s TCP within 0.5 m; ≤ 20 m/s² the sim's joint PD "
+                                     "still follows"),
+    "stop_rot_deceleration": (math.pi, 20.0 * math.pi, "rad/s²; the simulated arm's stop: the linear bounds × "
+                                                        "(π rad/s ÷ 1 m/s), the ratio of the speed bounds"),
     "max_obs_age_s": (0.0, 1.0, "s; UMI's camera latency is 0.17 s + a few frames: older than 1 s is a "
                                 "stalled stream"),
     "max_step_m": (0.0, 0.5, "m; a UMI chunk (16 actions × 0.1 s) at the default 0.25 m/s spans 0.4 m"),
@@ -71,11 +76,13 @@ def check_bound(where: str, key: str, value: Any, bounds: Mapping[str, tuple[flo
 
 
 def check_robot_limits(c: Any, where: str) -> None:
-    """The bounded robot-block limits of a UR or simulated UR config ``c`` (speeds, watchdogs, joint speed)."""
+    """The bounded robot-block limits of a UR or simulated UR config ``c`` (speeds, watchdogs, joint speed, the
+    simulated arm's stop decelerations)."""
     fast = bool(getattr(c, "allow_fast_speeds", False))
     for k in ("max_pos_speed", "max_rot_speed"):
         check_bound(where, k, getattr(c, k), FAST_BOUNDS if fast else BOUNDS)
-    for k in ("watchdog_s", "watchdog_min_frequency", "max_joint_speed"):
+    for k in ("watchdog_s", "watchdog_min_frequency", "max_joint_speed", "stop_deceleration",
+              "stop_rot_deceleration"):
         if hasattr(c, k):
             check_bound(where, k, getattr(c, k))
 

@@ -11,8 +11,11 @@ in its own process like the real backends, so the runner code is the same for si
   (the real arm's response time, which the runner's ``action_latency`` compensates), tracked by joint PD control
   with velocity feed-forward and gravity compensation within the UR5e's joint torque limits. The controller's protective stops are
   mirrored: an unreachable target (IK residual) or a joint tracking error above the limit stop the arm with one
-  message. The robot base frame is the UR controller's (``getActualTCPPose``): the MJCF's base turned 180° about
-  z and its link offsets set to the UR5e DH parameters (:func:`ur5e_fk_dh`; checked at load), so a robot config
+  message. Every stop — the runner's, a ``("stop",)`` command, the heartbeat watchdog, the runner's death, a
+  protective stop — decelerates the TCP to rest as ur-rtde's ``servoStop(a)`` does (:class:`StopRamp`:
+  ``stop_deceleration``, default servoStop's 10 m/s²), neither freezing it nor letting it run on to its target.
+  The robot base frame is the UR controller's (``getActualTCPPose``): the MJCF's base turned 180° about z and its
+  link offsets set to the UR5e DH parameters (:func:`ur5e_fk_dh`; checked at load), so a robot config
   (box, ``joints_init``, reach target) means the same physical pose in simulation and on the arm.
 * **gripper** (:class:`SimGripper`): a two-finger parallel gripper, position controlled, width in metres, its
   fingers move at most ``max_speed``; driven by the WSG-50 process loop (:func:`~umi_aug.deploy.wsg50.
@@ -27,7 +30,9 @@ in its own process like the real backends, so the runner code is the same for si
   behind the wrist camera; the demo sessions have no arm either).
 
 Every child process dies with the runner, also on SIGKILL (:func:`~umi_aug.deploy.device_process.child_setup`:
-``PR_SET_PDEATHSIG``, plus a parent-alive check every loop period).
+``PR_SET_PDEATHSIG``, plus a parent-alive check every loop period). The arm's process asks for SIGTERM as its
+parent-death signal and handles it by decelerating to rest first (:func:`stop_on_signal`; a SIGALRM backstop ends
+it if that hangs) — on the real arm the robot's own program does that stop when ur-rtde's watchdog fires.
 """
 
 from __future__ import annotations
@@ -35,14 +40,16 @@ from __future__ import annotations
 import collections
 import importlib.util
 import logging
+import math
 import multiprocessing as mp
 import os
 import queue
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import cv2
 import numpy as np
@@ -74,6 +81,9 @@ _IK_MAX_STEP = 0.05  # rad per iteration
 _IK_TOL_POS, _IK_TOL_ROT = 1e-6, 1e-5
 _ARMATURE = 0.1  # kg·m², per joint (UR harmonic drives, ratio ~100, reflect ~0.1 kg·m²)
 _MAX_CATCH_UP = 25  # physics steps one late period may add (50 ms); more is dropped (the sim slows down)
+_REST_LIN_M_S = 1e-3  # a stop ends when the TCP moves slower than this (m/s) ...
+_REST_ANG_RAD_S = 1e-2  # ... and turns slower than this (rad/s)
+_STOP_SETTLE_MAX_S = 0.5  # after the stop ramp the arm has this long (physics time, s) to come to rest
 
 #: UR5e Denavit–Hartenberg parameters (Universal Robots' published kinematics; base → tool0 flange), m / rad.
 UR5E_DH_D = (0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996)
@@ -184,6 +194,12 @@ class SimURConfig:
         kp: joint PD stiffness per joint (N·m/rad); damping is critical for the link inertia (``kd_ratio``).
         max_tracking_error_rad: joint tracking error that triggers the protective stop.
         max_ik_error_m: IK residual (m) that, held for ``unreachable_s``, triggers the protective stop.
+        stop_deceleration: TCP deceleration of every stop (m/s²; :class:`StopRamp`): ur-rtde's ``servoStop(a)``,
+            whose default ``a`` is 10 m/s² (``rtde_control_interface.h``; UMI's controller calls it without
+            arguments). Bounded by :data:`~umi_aug.deploy.safety.BOUNDS`.
+        stop_rot_deceleration: TCP angular deceleration of every stop (rad/s²): 10·π, so the rotation-speed bound
+            (π rad/s) stops in the 0.1 s that 10 m/s² needs for the TCP-speed bound (1 m/s) (``servoStop`` has
+            one linear rate; a pure rotation needs its own).
         model: UR5e MJCF path (null: robosuite's).
     """
 
@@ -203,6 +219,8 @@ class SimURConfig:
     max_tracking_error_rad: float = 0.2
     max_ik_error_m: float = 0.005
     unreachable_s: float = 0.1
+    stop_deceleration: float = 10.0
+    stop_rot_deceleration: float = 10.0 * math.pi
     model: str | None = None
     allow_fast_speeds: bool = False
 
@@ -294,6 +312,11 @@ class UR5eSim:
         d.qpos[self.qadr] = q
         self._mj.mj_forward(self.model, d)
 
+    def forward(self) -> None:
+        """Recompute the kinematics for the current joints (after ``mj_step`` the site pose and Jacobian are those
+        of the joints before the step's integration, 2 ms old)."""
+        self._mj.mj_forward(self.model, self.data)
+
     @property
     def q(self) -> np.ndarray:
         return self.data.qpos[self.qadr].copy()
@@ -307,6 +330,10 @@ class UR5eSim:
         T[:3, :3] = d.site_xmat[self.site].reshape(3, 3)
         T[:3, 3] = d.site_xpos[self.site]
         return T
+
+    def tcp_T(self) -> np.ndarray:
+        """[4, 4] TCP pose in the base frame (m), from the current kinematics."""
+        return self._site_T(self.data)
 
     def tcp_pose(self) -> np.ndarray:
         """[6] TCP pose in the base frame (m, rotation vector)."""
@@ -350,21 +377,79 @@ class UR5eSim:
             err = np.concatenate([T_goal[:3, 3] - T[:3, 3], _rotvec(T_goal[:3, :3] @ T[:3, :3].T)])
         return q, float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:]))
 
-    def step(self, q_target: np.ndarray, qd_target: np.ndarray | None = None) -> None:
-        """One physics step with joint PD torques towards ``q_target`` / ``qd_target`` (velocity feed-forward)
-        plus gravity/Coriolis compensation, clipped to the joint torque limits."""
+    def step(self, q_target: np.ndarray, qd_target: np.ndarray | None = None,
+             qdd_target: np.ndarray | None = None) -> None:
+        """One physics step with joint PD torques towards ``q_target`` / ``qd_target`` (rad, rad/s; velocity
+        feed-forward) plus gravity/Coriolis compensation and, with ``qdd_target`` (rad/s²), the inertia
+        feed-forward ``M·q̈`` (the stop ramp: the controller's own trajectory, tracked with its model), clipped to
+        the joint torque limits."""
         m, d = self.model, self.data
         inertia = np.maximum(d.qM[m.dof_Madr[self.dadr]], 1e-3)
         kd = self.kd_ratio * 2.0 * np.sqrt(self.kp * inertia)
         qd_t = 0.0 if qd_target is None else qd_target
         tau = self.kp * (q_target - self.q) + kd * (qd_t - self.qd) + d.qfrc_bias[self.dadr]
+        if qdd_target is not None:
+            vec, res = np.zeros(m.nv), np.zeros(m.nv)
+            vec[self.dadr] = qdd_target
+            self._mj.mj_mulM(m, d, res, vec)
+            tau = tau + res[self.dadr]
         d.qfrc_applied[self.dadr] = np.clip(tau, -self.tau_max, self.tau_max)
         self._mj.mj_step(m, d)
+
+
+@dataclass
+class StopRamp:
+    """The stop of the simulated arm, as ur-rtde's ``servoStop(a)`` (the controller's ``stopl(a)``): from the TCP
+    pose ``T0`` moving with ``twist``, the TCP keeps its direction of motion while its speed falls linearly to zero
+    in ``duration`` s — neither an instant freeze nor a run to the last target.
+
+    The displacement after ``τ`` s is ``g(τ)·twist`` with ``g(τ) = τ − τ²/(2·duration)`` (``duration/2`` once
+    ``τ ≥ duration``): position ``p0 + v·g(τ)``, orientation ``exp(ω·g(τ))·R0``. ``duration = max(|v|/a_lin,
+    |ω|/a_rot)``, so the linear deceleration is at most ``a_lin`` (m/s²) and the angular one at most ``a_rot``
+    (rad/s²); the stop distance is ``|v|·duration/2`` (``|v|²/(2·a_lin)`` when the linear term decides).
+
+    Attributes:
+        T0: [4, 4] TCP pose in the robot base frame at the start of the stop (m).
+        twist: [6] TCP velocity at the start, base frame: linear (m/s), angular (rad/s).
+        duration: time to rest (s); 0 when the arm already stands.
+    """
+
+    T0: np.ndarray
+    twist: np.ndarray
+    duration: float
+
+    @classmethod
+    def start(cls, T0: np.ndarray, twist: np.ndarray, a_lin: float, a_rot: float) -> "StopRamp":
+        """The ramp from pose ``T0`` [4, 4] and ``twist`` [6] with decelerations ``a_lin`` (m/s²), ``a_rot``
+        (rad/s²)."""
+        tw = np.asarray(twist, float).reshape(6)
+        duration = max(float(np.linalg.norm(tw[:3])) / a_lin, float(np.linalg.norm(tw[3:])) / a_rot)
+        return cls(np.asarray(T0, float).copy(), tw, duration)
+
+    def g(self, tau: float) -> float:
+        """Distance factor ``g(τ)`` (s): the displacement after ``tau`` s is ``g(τ)·twist``."""
+        if self.duration <= 0.0:
+            return 0.0
+        tau = min(max(float(tau), 0.0), self.duration)
+        return tau - tau * tau / (2.0 * self.duration)
+
+    def pose(self, tau: float) -> np.ndarray:
+        """[6] TCP target ``tau`` s after the start of the stop (base frame: m, rotation vector)."""
+        g = self.g(tau)
+        R = cv2.Rodrigues(np.ascontiguousarray(self.twist[3:] * g))[0] @ self.T0[:3, :3]
+        return np.concatenate([self.T0[:3, 3] + self.twist[:3] * g, _rotvec(R)])
 
 
 class SimServoLoop:
     """The simulated controller loop (the counterpart of :class:`~umi_aug.deploy.ur_rtde.URServoLoop`; runnable
     in-thread with a fake clock).
+
+    Every way out decelerates the arm to rest first, as ``servoStop`` does on the real arm (:class:`StopRamp`,
+    ``robot.stop_deceleration`` / ``stop_rot_deceleration``; physics keeps running, states keep being published):
+    the runner's stop (``stop_event``), a ``("stop",)`` command, the heartbeat watchdog, the runner's death (parent
+    check, or the parent-death signal through :meth:`request_stop`) and the simulated protective stops. The first
+    two then return; the others raise :class:`SafetyStop` once the arm stands. :attr:`last_stop` describes the
+    stop (for logs and tests).
 
     Args:
         cfg: :class:`SimURConfig`. commands: queue of ``("enable",)`` / ``("waypoint", pose[6], t)`` /
@@ -386,8 +471,71 @@ class SimServoLoop:
         self.n_physics_steps = 0
         self.n_dropped_steps = 0
         self.stats = stats  # optional shared [periods, physics steps, dropped steps]
+        self._requested: str | None = None
+        #: the last stop: reason, fault (raised), clock time it began (s), speeds then (m/s, rad/s), ramp
+        #: duration and physics time to rest (s), TCP travel from the start of the stop to rest (m)
+        self.last_stop: dict[str, Any] | None = None
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the loop to decelerate to rest and then raise :class:`SafetyStop` with ``reason`` (safe from a
+        signal handler: it only records the request; the first one wins)."""
+        if self._requested is None:
+            self._requested = str(reason)
+
+    def _stop_check(self, t_now: float) -> tuple[str, bool] | None:
+        """Why the loop must stop now (start of a period at clock time ``t_now``, s): ``(reason, fault)`` or None."""
+        if self._requested is not None:
+            return self._requested, True
+        if self.stop_event.is_set():
+            return "stopped by the runner", False
+        age = t_now - float(self.heartbeat.value)
+        if age > self.cfg.watchdog_s:
+            return (f"watchdog: no heartbeat from the runner for {age:.2f} s > robot.watchdog_s="
+                    f"{self.cfg.watchdog_s}"), True
+        if not parent_alive(self.parent_pid):
+            return f"the runner process {self.parent_pid} died", True
+        return None
+
+    def _steps_due(self, sim: UR5eSim, t_now: float, t0: float, n_sub: int) -> int:
+        """Physics steps this period: keep up with the clock (late periods catch up, at most ``_MAX_CATCH_UP``;
+        more is dropped and counted)."""
+        due = int((t_now - t0) / sim.dt) + n_sub - self.n_physics_steps - self.n_dropped_steps
+        n = min(max(due, 1), _MAX_CATCH_UP)
+        self.n_dropped_steps += max(due - n, 0)
+        return n
+
+    def _track(self, sim: UR5eSim, pose: np.ndarray, q_prev: np.ndarray, n: int, feed_forward: bool = True,
+               qd_prev: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+        """Servo the arm for ``n`` physics steps towards the TCP ``pose`` [6] (base frame): IK warm-started at the
+        last joint target ``q_prev``, the joint speed limit (UR5e: 180°/s), then the joint target moves linearly
+        from ``q_prev`` over the ``n`` steps (velocity feed-forward unless ``feed_forward`` is False; with
+        ``qd_prev``, the last period's target velocity, also the inertia feed-forward of the change).
+
+        Returns:
+            (new joint target [6] rad, its velocity [6] rad/s, IK position residual m)
+        """
+        q_ik, pos_err, _ = sim.ik(pos_rotvec_to_pose(pose), q_prev)
+        lim = self.cfg.max_joint_speed * n * sim.dt
+        q_target = q_prev + np.clip(q_ik - q_prev, -lim, lim)
+        qd_target = (q_target - q_prev) / (n * sim.dt) if feed_forward else np.zeros(6)
+        qdd_target = None if qd_prev is None else (qd_target - qd_prev) / (n * sim.dt)
+        for j in range(1, n + 1):
+            sim.step(q_prev + (q_target - q_prev) * (j / n), qd_target, qdd_target)
+        self.n_physics_steps += n
+        return q_target, qd_target, pos_err
+
+    def _publish(self, sim: UR5eSim, target: np.ndarray) -> None:
+        """One state record (the joints, TCP pose and speed after this period's physics steps) and the counters."""
+        sim.forward()  # TCP pose / speed of the joints now, not of the last step's start
+        self.state.put({"timestamp": self.clock.now() - self.cfg.obs_latency, "tcp_pose": sim.tcp_pose(),
+                        "tcp_speed": sim.tcp_speed(), "q": sim.q, "qd": sim.qd, "target_pose": target})
+        self.n_periods += 1
+        if self.stats is not None:
+            self.stats[:] = [self.n_periods, self.n_physics_steps, self.n_dropped_steps]
 
     def run(self, sim: UR5eSim | None = None) -> None:
+        """Observe until enabled, then servo until a stop; decelerate to rest (:meth:`_decelerate`); return, or
+        raise :class:`SafetyStop` for a fault (watchdog, runner died, protective stop)."""
         cfg = self.cfg
         sim = sim or UR5eSim(cfg)
         sim.reset(np.deg2rad(cfg.joints_init))
@@ -400,68 +548,131 @@ class SimServoLoop:
         t_bad: float | None = None
         delayed: collections.deque = collections.deque()
         armed = False
-        while not self.stop_event.is_set():
-            t_now = t_period = self.clock.now()
-            age = t_now - float(self.heartbeat.value)
-            if age > cfg.watchdog_s:
-                raise SafetyStop(f"watchdog: no heartbeat from the runner for {age:.2f} s > robot.watchdog_s="
-                                 f"{cfg.watchdog_s}")
-            if not parent_alive(self.parent_pid):
-                raise SafetyStop(f"the runner process {self.parent_pid} died")
+        while True:
+            t_now = self.clock.now()
+            stop = self._stop_check(t_now)
+            if stop is not None:
+                break
             pose = interp(t_now)
             delayed.append((t_now, pose))  # the arm acts on the servo target response_latency later
             while len(delayed) > 1 and delayed[1][0] <= t_now - cfg.response_latency:
                 delayed.popleft()
-            # physics keeps up with the wall clock: late periods take extra steps (at most _MAX_CATCH_UP)
-            due = int((t_now - t0) / sim.dt) + n_sub - self.n_physics_steps - self.n_dropped_steps
-            n = min(max(due, 1), _MAX_CATCH_UP)
-            self.n_dropped_steps += max(due - n, 0)
-            q_prev = q_target
-            q_ik, pos_err, rot_err = sim.ik(pos_rotvec_to_pose(delayed[0][1]), q_target)
-            # the controller's joint speed limit (UR5e: 180°/s): the joint target moves at most this fast
-            lim = cfg.max_joint_speed * n * sim.dt
-            q_target = q_prev + np.clip(q_ik - q_prev, -lim, lim)
+            n = self._steps_due(sim, t_now, t0, n_sub)
+            q_target, _, pos_err = self._track(sim, delayed[0][1], q_target, n, feed_forward=self.n_periods > 0)
             if pos_err > cfg.max_ik_error_m:
                 t_bad = t_now if t_bad is None else t_bad
                 if t_now - t_bad > cfg.unreachable_s:
-                    raise SafetyStop(f"protective stop (sim): target TCP pose {np.round(pose[:3], 4).tolist()} m is "
-                                     f"unreachable (IK residual {1000 * pos_err:.1f} mm for {t_now - t_bad:.2f} s)")
+                    stop = (f"protective stop (sim): target TCP pose {np.round(pose[:3], 4).tolist()} m is "
+                            f"unreachable (IK residual {1000 * pos_err:.1f} mm for {t_now - t_bad:.2f} s)", True)
             else:
                 t_bad = None
-            # the joint target moves linearly from the last period's over the n steps (velocity feed-forward)
-            qd_target = (q_target - q_prev) / (n * sim.dt) if self.n_periods else np.zeros(6)
-            for j in range(1, n + 1):
-                sim.step(q_prev + (q_target - q_prev) * (j / n), qd_target)
-            self.n_physics_steps += n
             track = float(np.abs(q_target - sim.q).max())
-            if track > cfg.max_tracking_error_rad:
-                raise SafetyStop(f"protective stop (sim): joint tracking error {track:.3f} rad > "
-                                 f"robot.max_tracking_error_rad={cfg.max_tracking_error_rad}")
-            self.state.put({"timestamp": self.clock.now() - cfg.obs_latency, "tcp_pose": sim.tcp_pose(),
-                            "tcp_speed": sim.tcp_speed(), "q": sim.q, "qd": sim.qd, "target_pose": pose})
-            stop = False
-            if not armed:
+            if stop is None and track > cfg.max_tracking_error_rad:
+                stop = (f"protective stop (sim): joint tracking error {track:.3f} rad > "
+                        f"robot.max_tracking_error_rad={cfg.max_tracking_error_rad}", True)
+            self._publish(sim, pose)
+            if stop is None and not armed:
                 cmd = poll_enable(self.commands)
-                stop, armed = cmd == "stop", cmd == "enable"
+                armed = cmd == "enable"
+                if cmd == "stop":
+                    stop = ("stop command", False)
                 if armed and self.enabled is not None:
                     self.enabled.value = 1
-            if armed and not stop:
-                interp, last_wp, stop = drain_waypoint_commands(self.commands, interp, last_wp, t_now + dt,
-                                                                cfg.max_pos_speed, cfg.max_rot_speed)
-            if stop:
-                return
-            self.n_periods += 1
-            if self.stats is not None:
-                self.stats[:] = [self.n_periods, self.n_physics_steps, self.n_dropped_steps]
-            self.clock.sleep_until(t_period + dt)  # as ur-rtde's waitPeriod: a late period is not made up
+            if stop is None and armed:
+                interp, last_wp, got_stop = drain_waypoint_commands(self.commands, interp, last_wp, t_now + dt,
+                                                                    cfg.max_pos_speed, cfg.max_rot_speed)
+                if got_stop:
+                    stop = ("stop command", False)
+            self.clock.sleep_until(t_now + dt)  # as ur-rtde's waitPeriod: a late period is not made up
+            if stop is not None:
+                break
+        self._decelerate(sim, t0, n_sub, *stop)
+        if stop[1]:
+            raise SafetyStop(stop[0])
+
+    def _decelerate(self, sim: UR5eSim, t0: float, n_sub: int, reason: str, fault: bool) -> None:
+        """Bring the TCP to rest as ``servoStop`` does: from the measured pose and velocity along
+        :class:`StopRamp` (``robot.stop_deceleration`` m/s², ``stop_rot_deceleration`` rad/s²), timed by the
+        physics steps (not the clock), servoed without the response latency (the controller acts at once); states
+        are published every period. Ends when the ramp is over and the TCP speed is below ``_REST_LIN_M_S`` /
+        ``_REST_ANG_RAD_S`` — or ``_STOP_SETTLE_MAX_S`` after the ramp (logged). Fills :attr:`last_stop`."""
+        cfg = self.cfg
+        dt = 1.0 / cfg.frequency
+        sim.forward()  # the pose and speed of the joints now (the ramp starts from where the arm is)
+        twist = sim.tcp_speed()
+        ramp = StopRamp.start(sim.tcp_T(), twist, cfg.stop_deceleration, cfg.stop_rot_deceleration)
+        p0, step0 = ramp.T0[:3, 3].copy(), self.n_physics_steps
+        self.last_stop = {"reason": reason, "fault": fault, "t_clock": self.clock.now(),
+                          "speed_m_s": float(np.linalg.norm(twist[:3])),
+                          "rot_speed_rad_s": float(np.linalg.norm(twist[3:])), "ramp_s": ramp.duration,
+                          "to_rest_s": 0.0, "distance_m": 0.0, "settled": True}
+        # the PD target of a physics step is the pose due at the step's start (as in the servo loop, where the arm
+        # at steady speed stands on its target when a step begins): the last target was one step back along the
+        # current velocity — no jump in the PD error, the feed-forward carries the current speed into the ramp
+        q_target, qd_target = sim.q - sim.qd * sim.dt, sim.qd
+        settled = self._at_rest(sim)
+        while not settled:
+            t_now = self.clock.now()
+            n = self._steps_due(sim, t_now, t0, n_sub)
+            tau_last = (self.n_physics_steps + n - 1 - step0) * sim.dt  # start of this period's last step (s)
+            pose = ramp.pose(tau_last)
+            q_target, qd_target, _ = self._track(sim, pose, q_target, n, qd_prev=qd_target)
+            self._publish(sim, pose)
+            tau = (self.n_physics_steps - step0) * sim.dt
+            settled = tau >= ramp.duration and self._at_rest(sim)
+            if not settled and tau >= ramp.duration + _STOP_SETTLE_MAX_S:
+                log.warning("simulated UR5e: not at rest %.2f s after the stop ramp (TCP %.4f m/s); stopping anyway",
+                            _STOP_SETTLE_MAX_S, float(np.linalg.norm(sim.tcp_speed()[:3])))
+                self.last_stop["settled"] = False
+                break
+            if not settled:
+                self.clock.sleep_until(t_now + dt)
+        self.last_stop["to_rest_s"] = (self.n_physics_steps - step0) * sim.dt
+        self.last_stop["distance_m"] = float(np.linalg.norm(sim.tcp_pose()[:3] - p0))
+        if self.last_stop["speed_m_s"] > _REST_LIN_M_S or self.last_stop["rot_speed_rad_s"] > _REST_ANG_RAD_S:
+            log.info("simulated UR5e stop (%s): %.3f m/s → rest in %.3f s over %.1f mm", reason,
+                     self.last_stop["speed_m_s"], self.last_stop["to_rest_s"], 1000 * self.last_stop["distance_m"])
+
+    @staticmethod
+    def _at_rest(sim: UR5eSim) -> bool:
+        v = sim.tcp_speed()
+        return bool(np.linalg.norm(v[:3]) < _REST_LIN_M_S and np.linalg.norm(v[3:]) < _REST_ANG_RAD_S)
+
+
+def stop_time_bound(cfg: SimURConfig) -> float:
+    """Longest stop the simulated arm can make (s): from the speed limits at the stop decelerations, plus the
+    settling allowance."""
+    return (max(cfg.max_pos_speed / cfg.stop_deceleration, cfg.max_rot_speed / cfg.stop_rot_deceleration)
+            + _STOP_SETTLE_MAX_S)
+
+
+def stop_on_signal(loop: SimServoLoop, parent_pid: int, backstop_s: float | None) -> Callable[[int, Any], None]:
+    """SIGTERM handler of the simulated arm's process — the parent-death signal it asked for
+    (:func:`~umi_aug.deploy.device_process.child_setup`) or a ``terminate()``: the loop decelerates to rest and
+    stops (:meth:`SimServoLoop.request_stop`), as the real arm's program does when ur-rtde's watchdog fires.
+    ``backstop_s`` s later SIGALRM (default action: terminate) ends the process whatever the loop does (None: no
+    backstop; tests)."""
+    armed = []
+
+    def handler(signum: int, frame: Any) -> None:
+        died = os.getppid() != parent_pid
+        loop.request_stop(f"the runner process {parent_pid} died" if died else f"terminated (signal {signum})")
+        if backstop_s is not None and not armed:
+            armed.append(True)
+            signal.alarm(max(1, int(math.ceil(backstop_s))))
+
+    return handler
 
 
 def _sim_robot_main(cfg: SimURConfig, heartbeat: Any, commands: Any, state: SharedStateBuffer, stop_event: Any,
                     errors: Any, enabled: Any, parent_pid: int) -> None:
-    child_setup(parent_pid)
+    child_setup(parent_pid, death_signal=signal.SIGTERM)  # the runner's death: decelerate, then exit
+    loop = SimServoLoop(cfg, commands, state, stop_event, heartbeat, stats=getattr(cfg, "_stats", None),
+                        enabled=enabled, parent_pid=parent_pid)
+    # the backstop leaves time for the model to load (a death during start-up) and for a loaded machine
+    signal.signal(signal.SIGTERM, stop_on_signal(loop, parent_pid, backstop_s=stop_time_bound(cfg) + 10.0))
     try:
-        SimServoLoop(cfg, commands, state, stop_event, heartbeat, stats=getattr(cfg, "_stats", None),
-                     enabled=enabled, parent_pid=parent_pid).run()
+        loop.run()
     except BaseException as exc:  # noqa: BLE001 - reported to the runner
         errors.put(str(exc) if isinstance(exc, DeployError) else f"{type(exc).__name__}: {exc}")
 
