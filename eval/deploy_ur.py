@@ -33,9 +33,17 @@ def main(cfg: DictConfig) -> None:
     from umi_aug.errors import UmiAugError
     from umi_aug.runtime import configure_threads, log_to_file
 
+    from umi_aug.errors import DeployError
+    from umi_aug.runtime import make_out_dir
+
     c = OmegaConf.to_container(cfg, resolve=True)
     out_dir = Path(c.get("out_dir") or "deploy_runs/latest")
     c["out_dir"] = str(out_dir)
+    try:
+        make_out_dir(out_dir, "out_dir", DeployError)
+    except DeployError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
     log_to_file(out_dir / "deploy_ur.log")
     configure_threads(1)
     try:

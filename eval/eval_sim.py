@@ -19,7 +19,8 @@ import hydra
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
-from umi_aug.errors import UmiAugError
+from umi_aug.config_keys import check_known_keys, check_override_keys
+from umi_aug.errors import EvalError, UmiAugError
 from umi_aug.eval.config import EvalSimConfig
 
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
@@ -30,11 +31,13 @@ ConfigStore.instance().store(name="eval_sim_schema", node=EvalSimConfig)
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval_sim")
 def main(cfg: DictConfig) -> None:
     from umi_aug.eval.runner import default_out_dir, run_eval
-    from umi_aug.runtime import configure_threads, log_to_file
+    from umi_aug.runtime import configure_threads, log_to_file, make_out_dir
 
     try:
+        check_known_keys(cfg, EvalSimConfig, "eval/eval_sim.py", EvalError)  # Hydra's +key=… included
         typed: EvalSimConfig = OmegaConf.to_object(cfg)
         out_dir = Path(typed.out_dir) if typed.out_dir else default_out_dir(typed)
+        make_out_dir(out_dir, "out_dir", EvalError)
         log_to_file(out_dir / "eval_sim.log")
         configure_threads(1)
         summary = run_eval(typed)
@@ -54,4 +57,9 @@ def _policy_override(argv: list[str]) -> list[str]:
 
 if __name__ == "__main__":
     sys.argv[1:] = _policy_override(sys.argv[1:])
+    try:  # before Hydra, whose message for an unknown `key=value` advises `+key=value`
+        check_override_keys(sys.argv[1:], EvalSimConfig, "eval/eval_sim.py", EvalError, groups=("eval_policy",))
+    except EvalError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
     main()

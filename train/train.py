@@ -8,7 +8,10 @@ Config groups live in ``configs/`` (``task``, ``policy``, ``aug`` = none | frees
 are type-checked against :class:`umi_aug.policy.config.TrainConfig`. As in UMI's ``train.py``, the composed
 config names the workspace class in ``_target_``; this script builds it and calls ``run()``. Output (checkpoints,
 ``logs.jsonl``, Hydra's ``.hydra/``) goes to ``outputs/<date>/<time>_<name>_<task>_<aug>/`` unless
-``hydra.run.dir=…`` or ``output_dir=…`` says otherwise; rerunning into the same directory resumes.
+``hydra.run.dir=…`` or ``output_dir=…`` says otherwise; rerunning into the same directory resumes (rows of
+``logs.jsonl`` past the checkpoint are dropped first), and a directory holding the logs of a run that left no
+checkpoint is refused. Every key is checked before any work: one not in the schema (a typo'd ``+key=…``
+included) or out of range ends in one ``error: …`` line (exit 2).
 """
 
 from __future__ import annotations
@@ -21,8 +24,10 @@ import hydra
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
-from umi_aug.errors import UmiAugError
+from umi_aug.config_keys import check_known_keys, check_override_keys
+from umi_aug.errors import PolicyError, UmiAugError
 from umi_aug.policy.config import TrainConfig, structured_config
+from umi_aug.policy.train_checks import check_train_values, prepare_run_folder
 
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
 
@@ -33,10 +38,16 @@ log = logging.getLogger("train")
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
 def main(cfg: DictConfig) -> None:
     try:
+        check_known_keys(cfg, TrainConfig, "train/train.py", PolicyError)  # Hydra's +key=… included
         typed = structured_config(cfg)
+        check_train_values(typed)
         cls = hydra.utils.get_class(typed._target_)
         log.info("config:\n%s", OmegaConf.to_yaml(cfg))
-        summary = cls(typed).run()
+        workspace = cls(typed)
+        dropped = prepare_run_folder(workspace.output_dir, workspace.ckpt_path, typed.training.resume)
+        if dropped:
+            log.info("%s", dropped)
+        summary = workspace.run()
     except UmiAugError as exc:
         log.error("%s", exc)
         print(f"error: {exc}", file=sys.stderr)
@@ -47,4 +58,9 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    try:  # before Hydra, whose message for an unknown `key=value` advises `+key=value`
+        check_override_keys(sys.argv[1:], TrainConfig, "train/train.py", PolicyError)
+    except PolicyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
     main()

@@ -1,9 +1,10 @@
-"""Command line: ``umi-aug demo | augment | make-session | reconstruct | train-splat | validate | intrinsics |
+"""Command line: ``umi-aug demo | augment | make-session | reconstruct | train-splat | validate | repair | intrinsics |
 square-demos | square-convert | square-init-configs``.
 
 ``umi-aug demo`` runs the whole method end to end on the built-in default scene (synthetic session →
 reconstruction → fisheye 3DGS → augmented episodes → UMI zarr → check against ground-truth renders).
 ``umi-aug augment SESSION`` is the offline export on any UMI session. ``umi-aug validate PATH`` checks a UMI replay buffer (directory or ``.zarr.zip``).
+``umi-aug repair PATH --out NEW`` writes a repaired copy of a buffer left by an interrupted append (PATH is only read).
 ``umi-aug make-session --out DIR`` renders a synthetic UMI session of the built-in MuJoCo scene.
 ``umi-aug intrinsics FILE`` prints a calibration (UMI/OpenICC JSON or ORB-SLAM3 yaml) and its 224² policy view.
 """
@@ -16,7 +17,7 @@ import sys
 from pathlib import Path
 
 from umi_aug.errors import UmiAugError
-from umi_aug.runtime import configure_threads
+from umi_aug.runtime import Terminated, configure_threads, terminate_like_ctrl_c
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -69,13 +70,25 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_validate(args: argparse.Namespace) -> int:
     from umi_aug.data import validate_replay_buffer
 
-    report = validate_replay_buffer(Path(args.path), deep=args.deep, progress=args.deep)
+    report = validate_replay_buffer(Path(args.path), deep=args.deep, progress=args.deep, umi=True)
     print(f"{args.path}: OK — {report.n_episodes} episodes, {report.n_steps} steps"
           + (", every chunk decoded" if args.deep else ", chunk listing complete (--deep decodes every chunk)"))
     for key, info in report.keys.items():
         print(f"  {key}: {info}")
     for w in report.warnings:
         print(f"  warning: {w}")
+    return 0
+
+
+def _cmd_repair(args: argparse.Namespace) -> int:
+    from umi_aug.data.repair import repair_copy
+
+    r = repair_copy(Path(args.path), Path(args.out))
+    for note in r.notes:
+        print(f"  {note}")
+    what = f"repaired copy written ({len(r.notes)} change(s) above)" if r.notes else \
+        "copy written; nothing needed a repair"
+    print(f"{r.out}: {what} — {r.n_episodes} episodes, {r.n_steps} steps; {args.path} unchanged")
     return 0
 
 
@@ -90,7 +103,27 @@ def _cmd_intrinsics(args: argparse.Namespace) -> int:
         print(f"{name}: {it.width}×{it.height} fx={it.fx:.4f} fy={it.fy:.4f} cx={it.cx:.4f} cy={it.cy:.4f} "
               f"k={tuple(round(x, 8) for x in it.k)} fold-over={np.degrees(it.theta_fold):.2f}° "
               f"valid FOV={it.fov_deg:.2f}°")
+    for w in _intrinsics_warnings(intr, path):
+        print(f"warning: {w}")
     return 0
+
+
+#: A fisheye's "valid FOV" above this means the model never folds over (its k do not bound the view): GoPro
+#: lenses see about 155 deg, UMI's 2.7k calibration folds at 104 deg from the axis (FOV 208 deg).
+FOV_WARN_DEG = 270.0
+
+
+def _intrinsics_warnings(intr, path: Path) -> list[str]:
+    """The session check's warnings for suspicious-but-legal intrinsics (principal point outside the image,
+    focal length, k1), and a field of view no lens has."""
+    from umi_aug.augment.preflight import intrinsics_warnings
+
+    out = intrinsics_warnings(intr, str(path))
+    if intr.fov_deg > FOV_WARN_DEG:
+        out.append(f"{path}: valid FOV = {intr.fov_deg:.2f}° is more than a fisheye lens sees (GoPro: about 155°; "
+                   f"UMI's calibration folds over at 104° from the axis): the distortion coefficients k = "
+                   f"{tuple(round(x, 6) for x in intr.k)} never fold over — a calibration of another camera model?")
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -111,6 +144,12 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("path")
     v.add_argument("--deep", action="store_true", help="decode every chunk (images included), with a progress bar")
     v.set_defaults(func=_cmd_validate)
+
+    r = sub.add_parser("repair", help="write a repaired copy of a replay buffer left by an interrupted append "
+                                      "(the input is only read)")
+    r.add_argument("path", help="the damaged replay buffer (directory or .zarr.zip); never modified")
+    r.add_argument("--out", required=True, help="the new copy (must not exist; a .zip name writes a .zarr.zip)")
+    r.set_defaults(func=_cmd_repair)
 
     i = sub.add_parser("intrinsics", help="show a fisheye calibration (UMI JSON or ORB-SLAM3 yaml)")
     i.add_argument("path")
@@ -149,14 +188,16 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("umi_aug").setLevel(logging.INFO)
     configure_threads()
     try:
-        return int(args.func(args))
+        with terminate_like_ctrl_c():  # SIGTERM (kill, timeout) ends like Ctrl-C: one line, resumable
+            return int(args.func(args))
     except UmiAugError as exc:
         print(f"umi-aug {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # Ctrl-C: one line, no traceback; outputs are resumable (see docs/robustness.md)
-        print(f"umi-aug {args.command}: interrupted (Ctrl-C); nothing half-written is kept — rerun the same "
+    except KeyboardInterrupt as exc:  # Ctrl-C / SIGTERM: one line, no traceback; outputs are resumable
+        how, code = ("SIGTERM", 143) if isinstance(exc, Terminated) else ("Ctrl-C", 130)
+        print(f"umi-aug {args.command}: interrupted ({how}); nothing half-written is kept — rerun the same "
               f"command to resume", file=sys.stderr)
-        return 130
+        return code
     except OSError as exc:  # the environment (disk full, read-only, permissions): one line naming the path
         if args.verbose:
             raise

@@ -7,7 +7,9 @@ Nothing here runs at import time; entry points (CLI, training, benchmarks, tests
 
 from __future__ import annotations
 
+import contextlib
 import os
+from typing import Iterator
 
 #: Environment variables that size the BLAS/OpenMP thread pools of numpy, scipy, torch and numba.
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
@@ -51,6 +53,61 @@ def configure_threads(n_threads: int | None = None) -> int:
             torch.set_num_threads(wanted)
         return wanted
     return int(os.environ["OMP_NUM_THREADS"])
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a job scheduler), raised like Ctrl-C's KeyboardInterrupt so that every
+    ``except KeyboardInterrupt`` clean-up (workers stopped, nothing half-written kept) runs for it too."""
+
+
+def _raise_terminated(signum, frame) -> None:  # noqa: ARG001 - signal handler signature
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def terminate_like_ctrl_c() -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`Terminated` in the main thread (the previous handler is put back
+    afterwards; elsewhere than the main thread nothing changes)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
+def restore_python_signal_handlers() -> None:
+    """Re-install Python's own SIGTERM handler after importing a native library that replaced it (pycolmap's
+    glog installs a "failure signal handler" that prints a native stack trace and kills the process)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        handler = signal.getsignal(signal.SIGTERM)
+        if handler is not None:
+            signal.signal(signal.SIGTERM, handler)
+
+
+def make_out_dir(path: str | os.PathLike, key: str, error: type[Exception]) -> "Path":
+    """Create the results folder ``path`` of an app (``key`` = the setting that named it, e.g. ``out_dir``), or
+    raise ``error`` in one line: ``out_dir=…: is a file, not a folder; …`` / ``…: cannot be created (…)``."""
+    from pathlib import Path
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise error(f"{key}={path}: is a file, not a folder; the results are written into a folder: choose another "
+                    f"{key}")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise error(f"{key}={path}: the folder cannot be created ({exc.strerror}: {exc.filename}); choose another "
+                    f"{key}") from exc
+    return path
 
 
 def log_to_file(path: str | os.PathLike, quiet: tuple[str, ...] = ("robosuite", "robomimic")) -> None:

@@ -155,7 +155,7 @@ def test_interrupted_append_is_detected_and_repaired(tmp_path, rng, monkeypatch,
         rb.add_episode(ep)
     path = rb.save(tmp_path / "ds.zarr")
     _crash_append(path, rng, monkeypatch, half_written)
-    expect = "strictly increasing" if half_written else r"length 9 but episode_ends\[-1\] = 7.*repair=True"
+    expect = "strictly increasing" if half_written else r"length 9 but episode_ends\[-1\] = 7.*`umi-aug repair "
     with pytest.raises(DatasetError, match=expect) as info:
         ReplayBuffer.open(path)
     assert str(path) in str(info.value)

@@ -5,12 +5,20 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["add_augment_parser", "cmd_augment", "config_from_args", "dataset_input_from_args"]
+__all__ = ["add_augment_parser", "cmd_augment", "config_from_args", "dataset_input_from_args", "check_args",
+           "input_kind"]
 
 #: 3DGS defaults for a plain dataset (one episode's ~100 pre-contact 224² frames, not a scan): on UMI's real
 #: "cup in the wild" episode 600 steps reach 25.7 dB held-out (benchmarks/real_umi.py); 4000 would take ~1 h.
 DATASET_SPLAT_ITERATIONS = 600
 DATASET_SPLAT_MAX_GAUSSIANS = 30_000
+#: ``--tcp-offset``: UMI's gripper has 0.205 m; a camera→TCP distance outside this range is a typo (mm, a sign)
+#: that used to fail only minutes later ("no splice frame", "points near the reachable region").
+DEFAULT_TCP_OFFSET_M = 0.205
+TCP_OFFSET_RANGE_M = (0.02, 0.5)
+#: flags of the "plain dataset / square demo folder input" group → the input kinds they apply to
+INPUT_FLAGS = {"--episodes": ("dataset", "square"), "--scene-group": ("dataset",), "--scene-map": ("dataset",),
+               "--tcp-offset": ("dataset",), "--no-embodiment": ("square",)}
 
 
 def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentParser:
@@ -53,12 +61,13 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
                    help="episodes to augment, e.g. 0:50 or 0,3,7:9 (default all; the others are copied unchanged)")
     g.add_argument("--no-embodiment", action="store_true",
                    help="square demos: skip the simulated Panda's feasibility check of each trajectory")
-    g.add_argument("--scene-group", type=int, default=1, metavar="N",
+    g.add_argument("--scene-group", type=int, default=None, metavar="N",
                    help="N consecutive episodes share one scene (default 1: a scene per episode)")
     g.add_argument("--scene-map", default=None, metavar="JSON",
                    help='JSON file {"scene": [episode, ...]} or [[episode, ...], ...] of episodes sharing a scene')
-    g.add_argument("--tcp-offset", type=float, default=0.205,
-                   help="UMI's tcp_offset (m, gripper tip to mount) of the camera→TCP transform")
+    g.add_argument("--tcp-offset", type=float, default=None,
+                   help=f"UMI's tcp_offset (m, gripper tip to mount) of the camera→TCP transform (default "
+                        f"{DEFAULT_TCP_OFFSET_M}; {TCP_OFFSET_RANGE_M[0]}..{TCP_OFFSET_RANGE_M[1]})")
     p.set_defaults(func=cmd_augment)
     return p
 
@@ -102,16 +111,69 @@ def _effort_arg(value: str | int | None) -> int | None:
         raise AugmentError(f"--jpegxl-effort {value!r}: expected an int in 1..9 or 'default'") from None
 
 
+def input_kind(path: str) -> str:
+    """``"dataset"`` (a plain UMI replay buffer), ``"square"`` (a square demo folder) or ``"session"``."""
+    from umi_aug.augment.dataset_source import is_dataset_path
+    from umi_aug.augment.square_source import is_square_demos
+
+    return "dataset" if is_dataset_path(path) else "square" if is_square_demos(path) else "session"
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Every flag checked before any work: ranges (named as typed), and the input-specific flags refused on an
+    input they do not apply to (they were silently ignored). Raises :class:`AugmentError` (one line)."""
+    from umi_aug.errors import AugmentError
+
+    kind = input_kind(args.session)
+    given = {"--episodes": args.episodes is not None, "--scene-group": args.scene_group is not None,
+             "--scene-map": args.scene_map is not None, "--tcp-offset": args.tcp_offset is not None,
+             "--no-embodiment": bool(args.no_embodiment)}
+    wrong = [f for f, on in given.items() if on and kind not in INPUT_FLAGS[f]]
+    if wrong:
+        what = {"session": "a UMI session folder (all its demos are augmented)", "dataset": "a plain UMI dataset",
+                "square": "a square demo folder"}[kind]
+        names = {"dataset": "a plain dataset", "square": "a square demo folder"}
+        applies = "; ".join(f"{f} applies to {' or '.join(names[k] for k in INPUT_FLAGS[f])} input" for f in wrong)
+        raise AugmentError(f"{', '.join(wrong)}: {args.session} is {what}; {applies}: drop "
+                           f"{'it' if len(wrong) == 1 else 'them'}")
+
+    def need(ok: bool, flag: str, value, want: str) -> None:
+        if not ok:
+            raise AugmentError(f"{flag} {value}: {want}")
+
+    need(args.n_per_demo >= 1, "-n/--n-per-demo", args.n_per_demo, "must be >= 1")
+    need(args.image_size >= 8, "--image-size", args.image_size, "must be >= 8 pixels (the dataset's frame side)")
+    need(0.0 < args.cone_deg <= 180.0, "--cone-deg", args.cone_deg, "must be in (0, 180] degrees")
+    need(0.0 < args.cone_radius < 10.0, "--cone-radius", args.cone_radius, "must be in (0, 10) metres")
+    need(args.splat_iterations is None or args.splat_iterations >= 0, "--splat-iterations", args.splat_iterations,
+         "must be >= 0 (0 = the untrained initial scene)")
+    need(args.splat_max_gaussians is None or args.splat_max_gaussians >= 1, "--splat-max-gaussians",
+         args.splat_max_gaussians, "must be >= 1")
+    need(args.max_attempts >= 1, "--max-attempts", args.max_attempts, "must be >= 1")
+    need(args.workers >= 1, "--workers", args.workers, "must be >= 1")
+    need(args.scene_group is None or args.scene_group >= 1, "--scene-group", args.scene_group, "must be >= 1")
+    lo, hi = TCP_OFFSET_RANGE_M
+    need(args.tcp_offset is None or lo <= args.tcp_offset <= hi, "--tcp-offset", args.tcp_offset,
+         f"must be in [{lo}, {hi}] m (UMI's gripper: {DEFAULT_TCP_OFFSET_M} m, the distance from the camera to the "
+         "fingertips' TCP along its axis)")
+    effort = _effort_arg(args.jpegxl_effort)
+    need(effort is None or 1 <= effort <= 9, "--jpegxl-effort", args.jpegxl_effort, "expected an int in 1..9 or "
+         "'default'")
+
+
 def dataset_input_from_args(args: argparse.Namespace):
     """The :class:`~umi_aug.augment.dataset_source.DatasetInput` of parsed arguments (used for a plain dataset)."""
     from umi_aug.augment.dataset_source import DatasetInput, load_scene_map, parse_episodes
     from umi_aug.errors import AugmentError
 
-    if getattr(args, "scene_group", 1) < 1:
-        raise AugmentError(f"--scene-group {args.scene_group}: must be >= 1")
-    return DatasetInput(tcp_offset_m=float(getattr(args, "tcp_offset", 0.205)),
+    scene_group = getattr(args, "scene_group", None)
+    scene_group = 1 if scene_group is None else int(scene_group)
+    tcp_offset = getattr(args, "tcp_offset", None)
+    if scene_group < 1:
+        raise AugmentError(f"--scene-group {scene_group}: must be >= 1")
+    return DatasetInput(tcp_offset_m=float(DEFAULT_TCP_OFFSET_M if tcp_offset is None else tcp_offset),
                         episodes=parse_episodes(getattr(args, "episodes", None)),
-                        scene_group=int(getattr(args, "scene_group", 1)),
+                        scene_group=scene_group,
                         scene_map=load_scene_map(args.scene_map) if getattr(args, "scene_map", None) else None)
 
 
@@ -123,6 +185,7 @@ def cmd_augment(args: argparse.Namespace) -> int:
     from umi_aug.augment.dataset_source import parse_episodes
     from umi_aug.augment.square_source import SquareInput, SquareSource, is_square_demos
 
+    check_args(args)  # before any work: a bad flag costs nothing
     cfg = config_from_args(args)
     source = None
     if is_square_demos(args.session):

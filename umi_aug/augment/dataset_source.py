@@ -196,6 +196,8 @@ def check_dataset(path: str | os.PathLike, image_size: int, inp: DatasetInput) -
     pose).
     """
     from umi_aug.data import ReplayBuffer
+    from umi_aug.data.validate import (FROZEN_ANGLE_RAD, FROZEN_MIN_STEPS, FROZEN_STEP_M, first_frozen_step,
+                                       gripper_width_problem)
     from umi_aug.geometry import pos_rotvec_to_pose
 
     p = Path(path)
@@ -240,6 +242,9 @@ def check_dataset(path: str | os.PathLike, image_size: int, inp: DatasetInput) -
             if not fin.all():
                 raise AugmentError(f"{p}: episode {e}: key 'data/{k}' holds NaN/Inf at step {int(np.argmin(fin))} "
                                    f"(row {a + int(np.argmin(fin))}); repair the dataset or drop the episode")
+    problem = gripper_width_problem(w_all, ends)  # copied episodes included: the output trains on them
+    if problem:
+        raise AugmentError(f"{p}: key 'data/robot0_gripper_width' {problem}")
     for e in sel:
         a, b = int(starts[e]), int(ends[e])
         where = f"{p}: episode {e} (rows {a}..{b - 1})"
@@ -258,13 +263,12 @@ def check_dataset(path: str | os.PathLike, image_size: int, inp: DatasetInput) -
                                f"{step[i]:.3f} m / {ang[i]:.1f} deg between steps {i} and {i + 1} (a lost-tracking "
                                f"gap; limits {inp.max_step_m} m, {inp.max_step_deg} deg per frame); split or drop "
                                f"the episode (--episodes)")
-        frozen = (step == 0.0) & (ang == 0.0)
-        if len(frozen) >= 8:
-            run = np.convolve(frozen.astype(int), np.ones(8, int), mode="valid")
-            if (run == 8).any():
-                i = int(np.flatnonzero(run == 8)[0])
-                raise AugmentError(f"{where}: key 'data/robot0_eef_pos' is frozen (identical poses) from step {i} "
-                                   f"for >= 8 frames: tracking was lost and the last pose held; drop the episode")
+        i = first_frozen_step(pos, rot)  # within a tolerance: round-off turns identical poses by ~1e-8 rad
+        if i is not None:
+            raise AugmentError(f"{where}: key 'data/robot0_eef_pos' is frozen (identical poses within "
+                               f"{FROZEN_STEP_M} m / {FROZEN_ANGLE_RAD} rad) from step {i} for >= "
+                               f"{FROZEN_MIN_STEPS} frames: tracking was lost and the last pose held; drop the "
+                               f"episode (--episodes)")
         out.T_world_tcp[e] = T
         out.gripper_width[e] = w_all[a:b].copy()
     return out

@@ -20,6 +20,8 @@ replay buffer's UMI codec.
 
 from __future__ import annotations
 
+import contextlib
+
 import json
 import logging
 import os
@@ -203,9 +205,7 @@ def _open_store(path: Path, key: str):
     attrs = dict(buf.root.attrs.get(ATTR, {}))
     if attrs.get("key") != key:
         buf.close()
-        raise AugmentError(f"{path}: an export of another configuration/session (attribute '{ATTR}.key' = "
-                           f"{attrs.get('key')!r}, this run {key!r}); delete it, pass resume=False, or choose "
-                           f"another --out")
+        raise AugmentError(_not_this_runs_output(path, attrs.get("key"), key))
     E = buf.n_episodes
     for k in RECORD_KEYS:
         a = buf.meta[k]
@@ -216,6 +216,17 @@ def _open_store(path: Path, key: str):
             log.warning("%s: dropping %d record(s) of an interrupted append from meta/%s", path, a.shape[0] - E, k)
             a.resize(E)
     return buf, attrs
+
+
+def _not_this_runs_output(path: Path, stored: str | None, key: str) -> str:
+    """The message for an existing ``--out`` (or its working store) that this run cannot resume: umi-aug's own
+    export of another configuration (``--restart`` replaces it), or no umi-aug export at all (never touched)."""
+    if stored is None:
+        return (f"{path}: exists and is not an umi-aug export (no attribute '{ATTR}'; a dataset of yours?); "
+                f"umi-aug never writes into it, and --restart deletes only umi-aug's own outputs: choose another "
+                f"--out")
+    return (f"{path}: an export of another configuration/session (attribute '{ATTR}.key' = {stored!r}, this run "
+            f"{key!r}); rerun with --restart to replace it (it is umi-aug's own output), or choose another --out")
 
 
 def _stored_key(path: Path) -> str | None:
@@ -407,10 +418,16 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
     work = Path(work_dir) if work_dir is not None else out.with_name(out.name + ".work")
     _check_paths(Path(session_dir), out, work)
     # one run per output and per work dir: a second run fails at once naming the holder's PID
-    with PathLock(out, "output", AugmentError), PathLock(work, "work dir", AugmentError, inside=True):
-        return _export(session_dir, out, work, cfg, resume=resume, progress=progress, pictures=pictures,
-                       dataset_input=dataset_input, fast=_fast_paths(fast_paths), encode_threads=encode_threads,
-                       source=source)
+    work_existed = work.exists()
+    try:
+        with PathLock(out, "output", AugmentError), PathLock(work, "work dir", AugmentError, inside=True):
+            return _export(session_dir, out, work, cfg, resume=resume, progress=progress, pictures=pictures,
+                           dataset_input=dataset_input, fast=_fast_paths(fast_paths), encode_threads=encode_threads,
+                           source=source)
+    finally:
+        if not work_existed:  # the lock made it: a run stopped by an up-front check leaves no empty <out>.work/
+            with contextlib.suppress(OSError):
+                work.rmdir()  # only when empty (a stage wrote nothing); never anything else
 
 
 def _fast_paths(fast_paths) -> frozenset:
@@ -519,18 +536,15 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
         _discard_previous(out, wpath)
     finished = False
     if out.name.endswith(".zip") and out.exists():  # checked before any stage runs: a mismatch costs nothing
-        if _stored_key(out) != key:
-            raise AugmentError(f"{out}: an export of another configuration/session (attribute "
-                               f"'{ATTR}.key' differs from this run's {key!r}); delete it, pass "
-                               f"resume=False, or choose another --out")
+        stored = _stored_key(out)
+        if stored != key:
+            raise AugmentError(_not_this_runs_output(out, stored, key))
         finished = True
         if wpath.exists():  # killed during the final clean-up: the output is complete, the working copy is left
             log.warning("export: %s is complete; removing the leftover working store %s", out, wpath)
             remove_tree_atomically(wpath)
     elif wpath.exists() and _stored_key(wpath) != key:
-        raise AugmentError(f"{wpath}: an export of another configuration/session (attribute "
-                           f"'{ATTR}.key' differs from this run's {key!r}); delete it, pass "
-                           f"resume=False, or choose another --out")
+        raise AugmentError(_not_this_runs_output(wpath, _stored_key(wpath), key))
     if not finished:  # before minutes of compute: the output (and a .zip's working copy) must fit
         need = _expected_bytes(src_ds, n_aug * len(cfg.modes) * cfg.n_per_demo, n_src, cfg.include_original)
         need = need * (2 if out.name.endswith(".zip") else 1) - tree_size(wpath)

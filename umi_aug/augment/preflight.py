@@ -60,12 +60,16 @@ def intrinsics_warnings(intr, source: str, frame_size: tuple[int, int] | None = 
 def _dataset_check(ds: Path, image_size: int | None) -> tuple[int, int]:
     """Validate the session's dataset: (episodes, bytes)."""
     from umi_aug.data import ReplayBuffer
+    from umi_aug.data.validate import gripper_width_problem
 
     try:
         with ReplayBuffer.open(ds) as buf:  # layout, NaN/Inf, complete chunk listing (umi_aug.data.validate)
             if "robot0_gripper_width" not in buf:
                 raise AugmentError(f"{ds}: no key 'data/robot0_gripper_width' (the demos' gripper widths); "
                                    f"keys: {buf.keys()}")
+            problem = gripper_width_problem(buf["robot0_gripper_width"][:], buf.episode_ends)
+            if problem:  # before: 16x "TrajError: gripper_width must be finite, >= 0" minutes later
+                raise AugmentError(f"{ds}: key 'data/robot0_gripper_width' {problem}")
             n = buf.n_episodes
             if image_size is not None and "camera0_rgb" in buf:
                 shape = tuple(buf["camera0_rgb"].shape[1:3])

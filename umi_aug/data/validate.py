@@ -23,8 +23,18 @@ from umi_aug.data.codecs import register_codecs
 from umi_aug.data.store import close_store, open_store
 from umi_aug.errors import DatasetError
 
-_REPAIR_HINT = ("extra trailing data beyond episode_ends[-1] (an interrupted append?); open it with "
-                "ReplayBuffer.open(path, mode='a', repair=True) to truncate it back to the last complete episode")
+#: Gripper width range (m) a UMI dataset may hold: UMI's gripper opens about 0.09 m, a WSG-50 0.11 m; a width
+#: below 0 or above this maximum is a unit or calibration error (mm instead of m, a wrong tag offset).
+GRIPPER_WIDTH_MIN_M, GRIPPER_WIDTH_MAX_M = 0.0, 0.2
+#: Consecutive steps whose TCP moves at most ``FROZEN_STEP_M`` and turns at most ``FROZEN_ANGLE_RAD`` are "the
+#: same pose" (exact equality missed poses whose round-off turns them by 1e-8 rad); ``FROZEN_MIN_STEPS`` of them in
+#: a row is a held pose of lost tracking. A hand-held camera at 60 fps moves far more than this per frame.
+FROZEN_STEP_M, FROZEN_ANGLE_RAD, FROZEN_MIN_STEPS = 1e-6, 1e-5, 8
+#: Keys of every arm a UMI policy reads (``UmiDataset``'s low-dim obs); one camera key at least.
+UMI_ROBOT_KEYS = ("eef_pos", "eef_rot_axis_angle", "gripper_width")
+
+_REPAIR_HINT = ("extra trailing data beyond episode_ends[-1] (an interrupted append?); `umi-aug repair {name} --out "
+                "<new path>` writes a copy cut back to the last complete episode (this one is not changed)")
 
 
 @dataclass(frozen=True)
@@ -58,12 +68,30 @@ def _codec_ids(group: zarr.Group, key: str) -> str:
     return ", ".join(repr(i) for i in ids) or "none"
 
 
+def _bad_metadata(group: zarr.Group, key: str) -> str | None:
+    """Why ``<group>/<key>/.zarray`` is unusable (missing, not JSON, not an object), or None."""
+    prefix = f"{group.path}/" if group.path else ""
+    try:
+        raw = group.store[f"{prefix}{key}/.zarray"]
+    except KeyError:
+        return "is missing"
+    try:
+        meta = json.loads(raw)
+    except (ValueError, UnicodeDecodeError) as exc:
+        return f"is not valid JSON ({exc})"
+    return None if isinstance(meta, dict) else f"holds a {type(meta).__name__}, not a JSON object"
+
+
 def open_array(group: zarr.Group, key: str, name: str) -> zarr.Array:
     """``group[key]``, turning numcodecs' unknown-codec error into a DatasetError naming key and codec."""
     where = f"{group.path}/{key}" if group.path else key
     try:
         return group[key]
     except Exception as exc:  # numcodecs UnknownCodecError (a ValueError), bad metadata, ...
+        bad_meta = _bad_metadata(group, key)
+        if bad_meta:
+            raise DatasetError(f"{name}: key '{where}': its metadata file '{where}/.zarray' {bad_meta}; the "
+                               "dataset is damaged: re-copy or re-create it") from exc
         ids = _codec_ids(group, key)
         raise DatasetError(
             f"{name}: key '{where}' cannot be opened: codec {ids} is not available ({type(exc).__name__}: "
@@ -84,8 +112,10 @@ def check_episode_ends(ends: np.ndarray, name: str) -> None:
     bad = np.flatnonzero(np.diff(ends) <= 0)
     if bad.size:
         i = int(bad[0]) + 1
+        last = (f"; a half-written last entry (an interrupted append?): `umi-aug repair {name} --out <new path>` "
+                "writes a copy without it (this one is not changed)") if i == ends.size - 1 else ""
         raise DatasetError(f"{where} must be strictly increasing: episode_ends[{i}] = {int(ends[i])} <= "
-                           f"episode_ends[{i - 1}] = {int(ends[i - 1])}")
+                           f"episode_ends[{i - 1}] = {int(ends[i - 1])}{last}")
 
 
 def first_nonfinite_row(values: np.ndarray) -> int | None:
@@ -102,7 +132,7 @@ def _check_data_array(key: str, arr: zarr.Array, n_steps: int, name: str, check_
     if arr.ndim == 0 or arr.shape[0] != n_steps:
         length = arr.shape[0] if arr.ndim else "scalar"
         longer = arr.ndim and arr.shape[0] > n_steps
-        hint = _REPAIR_HINT if longer else "missing rows: the buffer is truncated or corrupt"
+        hint = _REPAIR_HINT.format(name=name) if longer else "missing rows: the buffer is truncated or corrupt"
         raise DatasetError(f"{where} has length {length} but episode_ends[-1] = {n_steps}: {hint}")
     if schema.is_image_key(key):
         if arr.ndim != 4 or arr.shape[-1] != 3:
@@ -192,8 +222,80 @@ def decode_all_chunks(key: str, arr: zarr.Array, name: str, progress: bool = Fal
     return n
 
 
+def relative_turn_rad(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad) between consecutive rotation vectors ``rotvec`` [T, 3] → [T-1], accurate near 0
+    (``atan2(|sin|, cos)`` of the relative rotation, not ``arccos`` of its trace)."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(np.asarray(rotvec, np.float64)).as_matrix()
+    R_rel = np.einsum("nji,njk->nik", R[:-1], R[1:])
+    skew = np.stack([R_rel[:, 2, 1] - R_rel[:, 1, 2], R_rel[:, 0, 2] - R_rel[:, 2, 0],
+                     R_rel[:, 1, 0] - R_rel[:, 0, 1]], axis=1)
+    return np.arctan2(0.5 * np.linalg.norm(skew, axis=1), 0.5 * (np.trace(R_rel, axis1=1, axis2=2) - 1.0))
+
+
+def first_frozen_step(pos: np.ndarray, rotvec: np.ndarray, min_steps: int = FROZEN_MIN_STEPS) -> int | None:
+    """First step of ``min_steps`` consecutive steps between identical poses (within :data:`FROZEN_STEP_M` /
+    :data:`FROZEN_ANGLE_RAD`) in one episode's ``pos`` [T, 3] (m) and ``rotvec`` [T, 3] (rad), or None."""
+    pos = np.asarray(pos, np.float64)
+    if len(pos) < min_steps + 1:
+        return None
+    same = (np.linalg.norm(np.diff(pos, axis=0), axis=1) <= FROZEN_STEP_M) & \
+        (relative_turn_rad(rotvec) <= FROZEN_ANGLE_RAD)
+    run = np.convolve(same.astype(int), np.ones(min_steps, int), mode="valid")
+    hit = np.flatnonzero(run == min_steps)
+    return int(hit[0]) if hit.size else None
+
+
+def gripper_width_problem(widths: np.ndarray, ends: np.ndarray) -> str | None:
+    """``"= -0.03 m at row 12 (episode 1) is outside the gripper's range …"`` when a width of ``widths``
+    [N] or [N, 1] (m) lies outside [:data:`GRIPPER_WIDTH_MIN_M`, :data:`GRIPPER_WIDTH_MAX_M`], else None."""
+    w = np.asarray(widths, np.float64).reshape(len(widths), -1)[:, 0]
+    bad = np.flatnonzero((w < GRIPPER_WIDTH_MIN_M) | (w > GRIPPER_WIDTH_MAX_M))
+    if not bad.size:
+        return None
+    i = int(bad[0])
+    e = int(np.searchsorted(np.asarray(ends), i, side="right"))
+    return (f"= {w[i]:.6g} m at row {i} (episode {e}) is outside the gripper's range [{GRIPPER_WIDTH_MIN_M}, "
+            f"{GRIPPER_WIDTH_MAX_M}] m ({bad.size} of {len(w)} rows, range {np.nanmin(w):.6g}..{np.nanmax(w):.6g} m); "
+            "widths are metres between the fingers: a unit (mm?) or gripper-calibration error — re-create the "
+            "dataset")
+
+
+def check_umi_values(data: zarr.Group, ends: np.ndarray, name: str, warnings: list[str]) -> None:
+    """UMI's physical rules, beyond the layout: every arm's required keys present, gripper widths within
+    [:data:`GRIPPER_WIDTH_MIN_M`, :data:`GRIPPER_WIDTH_MAX_M`] (errors), no episode whose pose is frozen
+    (a warning: lost tracking held the last pose)."""
+    keys = set(data.array_keys())
+    robots = sorted({k.split("_", 1)[0] for k in keys if k.startswith("robot") and schema.pose_key_shape(k)}) \
+        or ["robot0"]
+    missing = [f"{r}_{k}" for r in robots for k in UMI_ROBOT_KEYS if f"{r}_{k}" not in keys]
+    if not any(schema.is_image_key(k) for k in keys):
+        missing.append("camera0_rgb")
+    if missing:
+        raise DatasetError(f"{name}: required key(s) {', '.join(repr('data/' + m) for m in missing)} missing; a UMI "
+                           f"dataset holds {', '.join(f'robot<i>_{k}' for k in UMI_ROBOT_KEYS)} for every arm and "
+                           "camera<j>_rgb frames (UMI's 07_generate_replay_buffer.py writes them all)")
+    starts = np.concatenate([[0], ends[:-1]]).astype(int)
+    for r in robots:
+        key = f"{r}_gripper_width"
+        problem = gripper_width_problem(data[key][:], ends)
+        if problem:
+            raise DatasetError(f"{name}: key 'data/{key}' {problem}")
+        pos = np.asarray(data[f"{r}_eef_pos"][:], np.float64)
+        rot = np.asarray(data[f"{r}_eef_rot_axis_angle"][:], np.float64)
+        for e, (a, b) in enumerate(zip(starts, ends)):
+            i = first_frozen_step(pos[a:b], rot[a:b])
+            if i is not None:
+                warnings.append(f"{name}: episode {e}: keys 'data/{r}_eef_pos'/'{r}_eef_rot_axis_angle' are "
+                                f"frozen (the same pose within {FROZEN_STEP_M} m / {FROZEN_ANGLE_RAD} rad) from "
+                                f"step {i} for >= {FROZEN_MIN_STEPS} steps (row {a + i}): tracking lost and the "
+                                "last pose held? augment refuses such an episode")
+                break
+
+
 def _validate_root(root: zarr.Group, name: str, check_values: bool, deep: bool = False,
-                   progress: bool = False) -> ValidationReport:
+                   progress: bool = False, umi: bool = False) -> ValidationReport:
     groups = set(root.group_keys())
     for g in (schema.DATA_GROUP, schema.META_GROUP):
         if g not in groups:
@@ -225,13 +327,15 @@ def _validate_root(root: zarr.Group, name: str, check_values: bool, deep: bool =
             decode_all_chunks(key, arr, name, progress)
         report.keys[key] = ArrayInfo(tuple(arr.shape), str(arr.dtype), tuple(arr.chunks),
                                      arr.compressor.codec_id if arr.compressor is not None else None)
+    if umi and ends.size:
+        check_umi_values(data, ends, name, warnings)
     return report
 
 
 def validate_replay_buffer(root_or_path: zarr.Group | str | os.PathLike | Any,
                            name_for_messages: str | None = None,
                            check_values: bool = True, deep: bool = False,
-                           progress: bool = False) -> ValidationReport:
+                           progress: bool = False, umi: bool = False) -> ValidationReport:
     """Check a UMI replay buffer and describe it.
 
     Args:
@@ -241,6 +345,8 @@ def validate_replay_buffer(root_or_path: zarr.Group | str | os.PathLike | Any,
         check_values: also read the pose/gripper arrays and reject NaN/Inf.
         deep: decode every chunk of every ``data/*`` array (images included; slow on big datasets).
         progress: a progress bar per array while decoding (``deep``).
+        umi: also apply UMI's physical rules (:func:`check_umi_values`: required keys, gripper width range;
+            frozen poses warn) — ``umi-aug validate``.
 
     Returns:
         ValidationReport with ``n_episodes``, ``n_steps`` (= ``episode_ends[-1]``), per-key layout and
@@ -256,11 +362,11 @@ def validate_replay_buffer(root_or_path: zarr.Group | str | os.PathLike | Any,
         name = name_for_messages or str(root_or_path)
         store, root = open_store(root_or_path, mode="r")
         try:
-            return _validate_root(root, name, check_values, deep, progress)
+            return _validate_root(root, name, check_values, deep, progress, umi)
         finally:
             close_store(store)
     root = getattr(root_or_path, "root", root_or_path)
     if not isinstance(root, zarr.Group):
         raise DatasetError(f"validate_replay_buffer: expected a zarr.Group, ReplayBuffer or path, got "
                            f"{type(root_or_path).__name__}")
-    return _validate_root(root, name_for_messages or "<in-memory replay buffer>", check_values, deep, progress)
+    return _validate_root(root, name_for_messages or "<in-memory replay buffer>", check_values, deep, progress, umi)

@@ -53,9 +53,14 @@ def _build_policy(cfg: Mapping[str, Any], fps: float) -> tuple[Any, ObsSpec, flo
         return pol, ObsSpec(1, 2, 3), float(cfg.get("dt") or pol.dt)
     if kind == "checkpoint":
         ckpt = cfg.get("checkpoint")
-        if not ckpt or not Path(ckpt).is_file():
-            raise DeployError(f"checkpoint={ckpt!r}: not a file; pass checkpoint=PATH (or policy=reach)")
+        from umi_aug.policy.checkpoint import checkpoint_file_problem
         from umi_aug.policy.inference import Policy
+
+        problem = checkpoint_file_problem(ckpt) if ckpt else "no such file"
+        if problem == "no such file":
+            raise DeployError(f"checkpoint={ckpt!r}: not a file; pass checkpoint=PATH (or policy=reach)")
+        if problem:  # a folder: the run folder instead of its checkpoints/latest.ckpt?
+            raise DeployError(f"checkpoint={ckpt}: {problem}")
 
         pol = Policy.from_checkpoint(ckpt, device=cfg.get("device") or "cpu")
         spec = ObsSpec.from_policy(pol)

@@ -262,8 +262,11 @@ def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
     if cfg.policy == "checkpoint":
         if not cfg.checkpoint:
             raise EvalError("policy=checkpoint needs checkpoint=PATH (or policy=expert|replay|hold|random)")
-        if not Path(cfg.checkpoint).is_file():
-            raise EvalError(f"checkpoint={cfg.checkpoint!r}: no such file")
+        from umi_aug.policy.checkpoint import checkpoint_file_problem
+
+        problem = checkpoint_file_problem(cfg.checkpoint)
+        if problem:
+            raise EvalError(f"checkpoint={cfg.checkpoint}: {problem}")
         key |= {"checkpoint_sha256": file_sha256(cfg.checkpoint), "n_action_steps": cfg.n_action_steps,
                 "gripper_close_below_m": float(cfg.gripper_close_below_m)}
         spec |= {"checkpoint": str(Path(cfg.checkpoint).resolve()), "device": cfg.device,

@@ -22,7 +22,7 @@ import torch
 from umi_aug.errors import PolicyError
 from umi_aug.io_utils import atomic_path
 
-__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint"]
+__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "checkpoint_file_problem"]
 
 CHECKPOINT_FORMAT = "umi_aug.policy/1"
 
@@ -36,6 +36,40 @@ def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
     return path
 
 
+def checkpoint_file_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be a checkpoint file — ``"no such file"``, or ``"is a directory, not a checkpoint
+    file; did you mean …/checkpoints/latest.ckpt?"`` (a training run folder) — or None when it is a file."""
+    path = Path(path)
+    if path.is_file():
+        return None
+    if not path.is_dir():
+        return "no such file"
+    found = [p for p in (path / "checkpoints" / "latest.ckpt", path / "latest.ckpt") if p.is_file()]
+    hint = (f"did you mean {found[0]}?" if found else
+            "pass the .ckpt file itself (train/train.py writes <run folder>/checkpoints/latest.ckpt)")
+    return f"is a directory, not a checkpoint file; {hint}"
+
+
+def _unreadable_why(path: Path, exc: Exception) -> str:
+    """A short reason ``torch.load`` failed on ``path``, without torch's advice about ``weights_only``."""
+    import zipfile
+
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    if not head:
+        return "the file is empty"
+    if not zipfile.is_zipfile(path) and not head.startswith(b"\x80"):  # torch.save: a zip (or a legacy pickle)
+        try:
+            head.decode("utf-8")
+            return "a text file, not a PyTorch checkpoint"
+        except UnicodeDecodeError:
+            return "not a PyTorch checkpoint (neither a torch zip archive nor a pickle)"
+    if "weights only" in str(exc).lower() or "weights_only" in str(exc):
+        return ("a PyTorch file holding Python objects that a safe load refuses: a checkpoint of another program, "
+                "e.g. a UMI/DP workspace checkpoint, whose encoder weights policy.encoder.pretrained_path can use")
+    return f"a damaged or truncated PyTorch file: {type(exc).__name__}"
+
+
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint` (``weights_only=True``: no code runs).
 
@@ -43,12 +77,15 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         PolicyError: missing/unreadable file, or not a umi-aug policy checkpoint.
     """
     path = Path(path)
-    if not path.is_file():
-        raise PolicyError(f"checkpoint {path}: no such file")
+    problem = checkpoint_file_problem(path)
+    if problem:
+        raise PolicyError(f"checkpoint {path}: {problem}")
     try:
         payload = torch.load(str(path), map_location=map_location, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - report the file
-        raise PolicyError(f"checkpoint {path}: cannot be read ({type(exc).__name__}: {exc})") from exc
+        raise PolicyError(f"checkpoint {path}: cannot be read ({_unreadable_why(path, exc)}); expected the "
+                          "latest.ckpt a training run writes (train/train.py → <run folder>/checkpoints/latest.ckpt)"
+                          ) from exc
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         fmt = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
         raise PolicyError(f"checkpoint {path}: format {fmt!r} is not {CHECKPOINT_FORMAT!r} (a UMI/DP workspace "

@@ -347,7 +347,7 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
                 arr = buf[key]
                 out = np.empty((n,) + tuple(arr.shape[1:]), np.uint8)
                 for s in range(0, n, step):
-                    out[s: s + step] = arr[s: min(n, s + step)]
+                    out[s: s + step] = self._decode(key, arr, s, min(n, s + step))
                     bar.update(min(n, s + step) - s)
                 frames[key] = out
         self._frames = frames
@@ -376,10 +376,29 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
         arr = self._buffer()[key]
         if len(uniq) > 1 and np.all(np.diff(uniq) == uniq[1] - uniq[0]):
             step = int(uniq[1] - uniq[0])
-            frames = arr[int(uniq[0]): int(uniq[-1]) + 1: step]
+            frames = self._decode(key, arr, int(uniq[0]), int(uniq[-1]) + 1, step)
         else:
-            frames = np.stack([arr[int(r)] for r in uniq])
+            frames = np.stack([self._decode(key, arr, int(r), int(r) + 1)[0] for r in uniq])
         return frames[inv]
+
+    def _decode(self, key: str, arr, a: int, b: int, step: int = 1) -> np.ndarray:
+        """``arr[a:b:step]``; a chunk that cannot be decoded raises :class:`PolicyError` naming the file, key,
+        chunk and rows (as ``umi-aug validate --deep`` does) instead of the codec's anonymous traceback."""
+        try:
+            return arr[a:b:step]
+        except Exception as exc:  # noqa: BLE001 - codec errors are of many types (imagecodecs, numcodecs, zlib)
+            c = int(arr.chunks[0])
+            bad, why = a // c, exc
+            for i in range(a // c, (b - 1) // c + 1):  # which chunk of the range (the error path only)
+                try:
+                    arr[i * c: (i + 1) * c]
+                except Exception as e:  # noqa: BLE001
+                    bad, why = i, e
+                    break
+            last = min((bad + 1) * c, arr.shape[0]) - 1
+            raise PolicyError(f"{self.path}: key 'data/{key}': chunk {bad} (rows {bad * c}..{last}) cannot be "
+                              f"decoded ({type(why).__name__}: {why}); the chunk is corrupt: re-copy or re-create "
+                              f"the dataset (`umi-aug validate --deep {self.path}` checks every chunk)") from exc
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         t = self.task

@@ -32,6 +32,18 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from umi_aug.recon.pipeline import ReconConfig, reconstruct_session
     from umi_aug.recon.sfm import SfmConfig
 
+    def need(ok: bool, flag: str, value, want: str) -> None:  # every flag before any work (SfM takes minutes)
+        if not ok:
+            raise ReconError(f"{flag} {value}: {want}")
+
+    need(args.voxel_mm is None or 0.5 <= args.voxel_mm <= 200.0, "--voxel-mm", args.voxel_mm,
+         "must be in [0.5, 200] mm (the SDF voxel; omit it to choose one from the region)")
+    need(args.features >= 64, "--features", args.features, "must be >= 64 (SIFT features per frame)")
+    need(0.0 < args.cone_deg <= 180.0, "--cone-deg", args.cone_deg, "must be in (0, 180] degrees")
+    need(0.0 < args.contact_threshold_mm <= 1000.0, "--contact-threshold-mm", args.contact_threshold_mm,
+         "must be in (0, 1000] mm")
+    if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
+        raise ReconError(f"--out {args.out}: is a file, not a folder: choose another --out")
     overrides = {}
     for item in args.contact:
         name, _, frame = item.partition("=")

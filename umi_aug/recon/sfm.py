@@ -48,6 +48,9 @@ def _pycolmap():
     except ImportError as exc:  # pragma: no cover - recon extra
         raise ReconError("structure from motion needs pycolmap: pip install 'umi-aug[recon]' "
                          "(pycolmap==4.2.1)") from exc
+    from umi_aug.runtime import restore_python_signal_handlers
+
+    restore_python_signal_handlers()  # glog's SIGTERM handler printed 21 native frames instead of our one line
     # COLMAP's glog INFO/WARNING lines stay out of the user's console unless they ask for them (DEBUG logging of
     # this module, e.g. `umi-aug -v`); errors still print.
     pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 2

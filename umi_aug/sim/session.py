@@ -332,7 +332,8 @@ def make_session(out_dir: str | os.PathLike, seed: int = 0, config: SessionConfi
     cfg.check()
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not cfg.overwrite:
-        raise SimError(f"{out} exists and is not empty; choose another --out or pass overwrite=True")
+        raise SimError(f"{out} exists and is not empty; choose another --out, or rerun with --overwrite to replace "
+                       f"it (its contents are deleted)")
     t_start = time.perf_counter()
     ss = np.random.SeedSequence([cfg.seed, 0x5E55])
     rng_scan, rng_points, *rng_demos = (np.random.default_rng(s) for s in ss.spawn(2 + cfg.n_demos))

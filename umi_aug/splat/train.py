@@ -315,7 +315,8 @@ def _load_checkpoint(path: Path, cfg: SplatTrainConfig, names: list[str]) -> dic
     try:
         ck = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # noqa: BLE001  (any unreadable file: say which)
-        raise SplatError(f"{path}: unreadable checkpoint ({exc}); delete it or pass resume=False") from exc
+        raise SplatError(f"{path}: unreadable checkpoint ({exc}); rerun with --restart to start over "
+                         f"(umi-aug train-splat), or delete it") from exc
     if ck.get("version") != CHECKPOINT_VERSION:
         raise SplatError(f"{path}: checkpoint version {ck.get('version')!r}, expected {CHECKPOINT_VERSION}")
     old = ck["cfg"]
@@ -324,10 +325,10 @@ def _load_checkpoint(path: Path, cfg: SplatTrainConfig, names: list[str]) -> dic
     if diff:
         changes = ", ".join(f"{k}: {old.get(k)!r} -> {new[k]!r}" for k in diff)
         raise SplatError(f"{path}: checkpoint was trained with other settings ({changes}); use the same config "
-                         f"or resume=False")
+                         f"or rerun with --restart to start over (umi-aug train-splat)")
     if ck["views"] != names:
         raise SplatError(f"{path}: checkpoint was trained on other views ({len(ck['views'])} vs {len(names)}); "
-                         f"resume=False to start over")
+                         f"rerun with --restart to start over (umi-aug train-splat)")
     return ck
 
 
