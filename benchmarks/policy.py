@@ -11,6 +11,9 @@ Run: ``OMP_NUM_THREADS=2 python benchmarks/policy.py [--dataset PATH] [--device 
   (data, augmentation, forward, backward, AdamW, EMA), measured between step 5 and the last, for today's path
   (frames decoded per sample; the sector-by-sector HSV of the colour jitter) and the fast one (frames decoded once
   into memory; the sector-free HSV), in one run, alternating.
+* Recipes (``--recipes DATASET``, issue #29 part 3): the same whole loop for the learning-curve recipes
+  (diffusion or regression head, average or spatial-softmax pooling, 2 or 1 image frames) in one run, alternating,
+  so their training minutes can be compared on a quiet machine (the curves' own clocks ran beside other work).
 * Training: one optimiser step (forward with train-time augmentation, backward, AdamW, EMA) at batch ``--batch``
   on a pre-loaded batch, for ``policy=small`` (ResNet-18 layout at 1/4 width, U-Net 64/128/256),
   ``policy=resnet18`` and ``policy=clip_vit_b16`` (the paper's: ViT-B/16 + U-Net 256/512/1024). ``--device cuda``
@@ -150,6 +153,28 @@ LOOP_VARIANTS: dict[str, dict] = {
 }
 
 
+def _merge(into: dict, extra: dict) -> dict:
+    """Deep-merge ``extra`` into ``into`` (nested dicts merged key by key, other values replaced)."""
+    for k, v in extra.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            _merge(into[k], v)
+        else:
+            into[k] = v
+    return into
+
+
+_REG = {"action_head": "regression", "head_hidden_dims": [1024, 1024], "regression_loss": "l1"}
+_SSM = {"encoder": {"resnet_pool": "spatial_softmax", "spatial_softmax_keypoints": 32}}
+#: The learning-curve recipes (train.py overrides in the name) as overrides of the fast loop's config.
+RECIPES: dict[str, dict] = {
+    "policy=small (diffusion, 2 frames)": {},
+    "policy=small task.img_obs_horizon=1": {"task": {"img_obs_horizon": 1}},
+    "policy=small_regression": {"policy": dict(_REG)},
+    "policy=small_regression_ssm": {"policy": {**_REG, **_SSM}},
+    "policy=small_regression_ssm img_obs_horizon=1": {"policy": {**_REG, **_SSM}, "task": {"img_obs_horizon": 1}},
+}
+
+
 def bench_loop(path: Path, variant: dict, steps: int, batch: int, out: Path, extra: dict | None = None) -> dict:
     """``TrainWorkspace.run`` for ``steps`` steps; steps/s between step 5 and the last (from ``logs.jsonl``)."""
     import json
@@ -168,8 +193,7 @@ def bench_loop(path: Path, variant: dict, steps: int, batch: int, out: Path, ext
             "training": {"max_steps": steps, "num_epochs": 100000, "lr_warmup_steps": 10, "val_every": 0,
                          "sample_every": 0, "checkpoint_every": 0, "checkpoint_every_steps": 0, "resume": False,
                          "progress_bar": False}}
-    for k, v in (extra or {}).items():
-        over.setdefault(k, {}).update(v)
+    _merge(over, extra or {})
     fast = image_aug.hsv_to_rgb
     if variant["hsv"] == "reference":
         image_aug.hsv_to_rgb = image_aug._hsv_to_rgb_reference
@@ -260,11 +284,31 @@ def main() -> None:
                     help="time the training loop on this square demo zarr (umi-aug square-demos --image-size 84)")
     ap.add_argument("--loop-steps", type=int, default=40)
     ap.add_argument("--loop-rounds", type=int, default=2)
+    ap.add_argument("--recipes", default=None, metavar="DATASET",
+                    help="time the learning-curve recipes' whole training loop on this 84² square demo dataset")
     args = ap.parse_args()
     configure_threads()
     import torch
 
     logging.basicConfig(level=logging.WARNING)
+    if args.recipes:
+        print(f"training loop per recipe — batch 64, 84² square demos {args.recipes}, {torch.get_num_threads()} "
+              f"threads, {args.loop_steps} steps per run, {args.loop_rounds} rounds alternating")
+        fast = LOOP_VARIANTS["+ channels-last ResNet (after, fp32)"]
+        rec: dict[str, list] = {k: [] for k in RECIPES}
+        with tempfile.TemporaryDirectory() as tmp:
+            for r in range(args.loop_rounds):
+                for i, (name, extra) in enumerate(RECIPES.items()):
+                    rec[name].append(bench_loop(Path(args.recipes), fast, args.loop_steps, 64,
+                                                Path(tmp) / f"{r}_{i}", copy.deepcopy(extra)))
+        base = np.median([x["steps_per_s"] for x in rec[next(iter(RECIPES))]])
+        head = f"{'recipe (train.py overrides)':<48}{'steps/s (runs)':>18}{'×':>7}{'min / 1000 steps':>18}"
+        print(head + "\n" + "-" * len(head))
+        for name, xs in rec.items():
+            v = [x["steps_per_s"] for x in xs]
+            med = float(np.median(v))
+            print(f"{name:<48}{' / '.join(f'{x:.2f}' for x in v):>18}{med / base:>7.2f}{1000 / med / 60:>18.2f}")
+        return
     if args.loop:
         print(f"training loop — policy=small, batch 64, 84² square demos {args.loop}, {torch.get_num_threads()} "
               f"threads, {args.loop_steps} steps per run, {args.loop_rounds} rounds alternating")
