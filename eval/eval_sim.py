@@ -7,7 +7,8 @@
     python eval/eval_sim.py --cfg job                        # print the composed config
 
 Writes ``out_dir/{run.json, results.jsonl, summary.json, init_success.png, eval_sim.log, videos/}``; rerunning
-the same command resumes (finished configurations are skipped). See ``eval/README.md``.
+the same command resumes (finished configurations are skipped), also after Ctrl-C or SIGTERM (``kill``,
+``timeout``), which end in one ``eval/eval_sim.py: interrupted (…)`` line (exit 130 / 143). See ``eval/README.md``.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from umi_aug.eval.config import EvalSimConfig
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
 
 ConfigStore.instance().store(name="eval_sim_schema", node=EvalSimConfig)
+#: The results folder of the run (``out``), for the interrupted line.
+_RUN: dict[str, Path] = {}
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval_sim")
@@ -38,6 +41,7 @@ def main(cfg: DictConfig) -> None:
         typed: EvalSimConfig = OmegaConf.to_object(cfg)
         out_dir = Path(typed.out_dir) if typed.out_dir else default_out_dir(typed)
         make_out_dir(out_dir, "out_dir", EvalError)
+        _RUN["out"] = out_dir
         log_to_file(out_dir / "eval_sim.log")
         configure_threads(1)
         summary = run_eval(typed)
@@ -62,4 +66,14 @@ if __name__ == "__main__":
     except EvalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
-    main()
+    from umi_aug.runtime import interruption, terminate_like_ctrl_c
+
+    try:
+        with terminate_like_ctrl_c():  # SIGTERM (kill, timeout, a scheduler) ends like Ctrl-C: one line, resumable
+            main()
+    except KeyboardInterrupt as exc:
+        how, code = interruption(exc)
+        kept = (f"the finished configurations are kept in {_RUN['out'] / 'results.jsonl'}" if "out" in _RUN
+                else "nothing was evaluated")
+        print(f"eval/eval_sim.py: interrupted ({how}); {kept} — rerun the same command to resume", file=sys.stderr)
+        sys.exit(code)

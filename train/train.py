@@ -11,7 +11,9 @@ config names the workspace class in ``_target_``; this script builds it and call
 ``hydra.run.dir=…`` or ``output_dir=…`` says otherwise; rerunning into the same directory resumes (rows of
 ``logs.jsonl`` past the checkpoint are dropped first), and a directory holding the logs of a run that left no
 checkpoint is refused. Every key is checked before any work: one not in the schema (a typo'd ``+key=…``
-included) or out of range ends in one ``error: …`` line (exit 2).
+included) or out of range ends in one ``error: …`` line (exit 2). Ctrl-C and SIGTERM (``kill``, ``timeout``, a job
+scheduler) end in one ``train/train.py: interrupted (…)`` line naming the command that resumes from the last
+checkpoint (exit 130 / 143).
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
 
 ConfigStore.instance().store(name="train_schema", node=TrainConfig)
 log = logging.getLogger("train")
+#: The run folder and checkpoint of the workspace being trained (``out``, ``ckpt``), for the interrupted line.
+_RUN: dict[str, Path] = {}
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
@@ -44,6 +48,7 @@ def main(cfg: DictConfig) -> None:
         cls = hydra.utils.get_class(typed._target_)
         log.info("config:\n%s", OmegaConf.to_yaml(cfg))
         workspace = cls(typed)
+        _RUN.update(out=Path(workspace.output_dir), ckpt=Path(workspace.ckpt_path))
         dropped = prepare_run_folder(workspace.output_dir, workspace.ckpt_path, typed.training.resume)
         if dropped:
             log.info("%s", dropped)
@@ -57,10 +62,38 @@ def main(cfg: DictConfig) -> None:
           f"metrics {Path(summary['output_dir']) / 'logs.jsonl'}")
 
 
+def interrupted_line(how: str, argv: list[str]) -> str:
+    """The one line for a run stopped by Ctrl-C / SIGTERM (``how``): the command that resumes it from its last
+    checkpoint (``argv``: this run's overrides, given the run folder when Hydra chose it — a plain rerun would start a
+    new dated folder), or why there is nothing to resume."""
+    import shlex
+
+    head = f"train/train.py: interrupted ({how})"
+    if "out" not in _RUN:
+        return f"{head} before training started; nothing was trained: rerun the same command"
+    out, ckpt = _RUN["out"], _RUN["ckpt"]
+    if not ckpt.is_file():
+        return (f"{head} before its first checkpoint ({ckpt} was not written), so there is nothing to resume: rerun "
+                f"into a new folder (hydra.run.dir=<new folder>); {out} holds only the interrupted run's logs")
+    keep = [a for a in argv if a.split("=", 1)[0].lstrip("+~") not in ("training.resume",)]  # resume=false refuses
+    if not any(a.split("=", 1)[0].lstrip("+") in ("hydra.run.dir", "output_dir") for a in keep):
+        keep.append(f"hydra.run.dir={out}")
+    return (f"{head}; its checkpoint {ckpt} is kept (steps after it are trained again): resume with "
+            f"`{shlex.join(['python', 'train/train.py', *keep])}`")
+
+
 if __name__ == "__main__":
+    from umi_aug.runtime import interruption, terminate_like_ctrl_c
+
     try:  # before Hydra, whose message for an unknown `key=value` advises `+key=value`
         check_override_keys(sys.argv[1:], TrainConfig, "train/train.py", PolicyError)
     except PolicyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
-    main()
+    try:
+        with terminate_like_ctrl_c():  # SIGTERM (kill, timeout, a scheduler) ends like Ctrl-C: one line, resumable
+            main()
+    except KeyboardInterrupt as exc:
+        how, code = interruption(exc)
+        print(interrupted_line(how, sys.argv[1:]), file=sys.stderr)
+        sys.exit(code)

@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from umi_aug.errors import UmiAugError
-from umi_aug.runtime import Terminated, configure_threads, terminate_like_ctrl_c
+from umi_aug.runtime import configure_threads, interruption, terminate_like_ctrl_c
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -68,9 +68,17 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
+    from umi_aug.augment.exporter import interrupted_export_message
     from umi_aug.data import validate_replay_buffer
+    from umi_aug.errors import DatasetError
 
-    report = validate_replay_buffer(Path(args.path), deep=args.deep, progress=args.deep, umi=True)
+    path = Path(args.path)
+    partial = path.with_name(path.name + ".partial")  # a .zarr.zip export is written from it at the end
+    stopped = (interrupted_export_message(path) if path.exists() else
+               interrupted_export_message(partial, shown=path) if partial.is_dir() else None)
+    if stopped:  # before the layout checks: an interrupted append is the export's to resume, not to repair
+        raise DatasetError(stopped)
+    report = validate_replay_buffer(path, deep=args.deep, progress=args.deep, umi=True)
     print(f"{args.path}: OK — {report.n_episodes} episodes, {report.n_steps} steps"
           + (", every chunk decoded" if args.deep else ", chunk listing complete (--deep decodes every chunk)"))
     for key, info in report.keys.items():
@@ -187,6 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.verbose:
         logging.getLogger("umi_aug").setLevel(logging.INFO)
     configure_threads()
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # as typed (augment records it to name its resume)
     try:
         with terminate_like_ctrl_c():  # SIGTERM (kill, timeout) ends like Ctrl-C: one line, resumable
             return int(args.func(args))
@@ -194,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"umi-aug {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:  # Ctrl-C / SIGTERM: one line, no traceback; outputs are resumable
-        how, code = ("SIGTERM", 143) if isinstance(exc, Terminated) else ("Ctrl-C", 130)
+        how, code = interruption(exc)
         print(f"umi-aug {args.command}: interrupted ({how}); nothing half-written is kept — rerun the same "
               f"command to resume", file=sys.stderr)
         return code

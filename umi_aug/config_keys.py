@@ -81,28 +81,33 @@ def unknown_override_keys(argv: list[str], schema: type, groups: tuple[str, ...]
     return out
 
 
-def _raise(bad: list[tuple[str, list[str]]], script: str, error: type[Exception]) -> None:
+def _raise(bad: list[tuple[str, list[str]]], script: str, error: type[Exception], hint: str | None = None,
+           where: str = "") -> None:
     name, near = bad[0]
     more = f" (and {len(bad) - 1} more: {', '.join(b for b, _ in bad[1:])})" if len(bad) > 1 else ""
-    hint = f"did you mean {near[0]}? " if near else ""
-    raise error(f"config key {name!r} does not exist{more}; {hint}`python {script} --cfg job` prints every key")
+    mean = f"did you mean {near[0]}? " if near else ""
+    hint = f"`python {script} --cfg job` prints every key" if hint is None else hint
+    raise error(f"{where}config key {name!r} does not exist{more}; {mean}{hint}")
 
 
-def check_known_keys(cfg: Any, schema: type, script: str, error: type[Exception]) -> None:
+def check_known_keys(cfg: Any, schema: type, script: str, error: type[Exception], hint: str | None = None,
+                     where: str = "") -> None:
     """Raise ``error`` naming the first unknown key of ``cfg`` (see :func:`unknown_keys`) and the fix.
 
     Args:
         script: how the user runs the app (``train/train.py``), for the ``--cfg job`` hint.
+        hint: the command that lists every key, when it is not ``python <script> --cfg job``.
+        where: what the message starts with (the file that holds ``cfg``: ``"<path>: "``).
     """
     bad = unknown_keys(cfg, schema)
     if bad:
-        _raise(bad, script, error)
+        _raise(bad, script, error, hint, where)
 
 
 def check_override_keys(argv: list[str], schema: type, script: str, error: type[Exception],
-                        groups: tuple[str, ...] = ()) -> None:
+                        groups: tuple[str, ...] = (), hint: str | None = None, where: str = "") -> None:
     """Raise ``error`` naming the first override key of ``argv`` the schema lacks (see
-    :func:`unknown_override_keys`), with the nearest field."""
+    :func:`unknown_override_keys`), with the nearest field (``hint`` / ``where``: see :func:`check_known_keys`)."""
     bad = unknown_override_keys(argv, schema, groups)
     if bad:
-        _raise(bad, script, error)
+        _raise(bad, script, error, hint, where)

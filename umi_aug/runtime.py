@@ -64,6 +64,12 @@ def _raise_terminated(signum, frame) -> None:  # noqa: ARG001 - signal handler s
     raise Terminated()
 
 
+def interruption(exc: KeyboardInterrupt) -> tuple[str, int]:
+    """How an entry point names an interruption and the exit code it ends with (128 + the signal's number, as a
+    shell reports a killed command): ``("SIGTERM", 143)`` for :class:`Terminated`, ``("Ctrl-C", 130)`` otherwise."""
+    return ("SIGTERM", 143) if isinstance(exc, Terminated) else ("Ctrl-C", 130)
+
+
 @contextlib.contextmanager
 def terminate_like_ctrl_c() -> Iterator[None]:
     """Within the block, SIGTERM raises :class:`Terminated` in the main thread (the previous handler is put back

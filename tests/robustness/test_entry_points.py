@@ -320,3 +320,161 @@ def test_training_on_a_session_folder_suggests_its_dataset(tmp_path):
     assert str(e.value).startswith(f"task.dataset_path: {sess}: not a zarr group (")
     assert str(e.value).endswith(f"; did you mean {sess / 'dataset.zarr.zip'}? ({sess} looks like a UMI session "
                                  "folder)")
+
+
+# ------------------------------------------------------------------------------------------- SIGTERM in the scripts
+#: ``python -c`` prelude: SIGTERM this process right after a given call (deterministic: the handler runs before the
+#: next bytecode), then run the script as ``__main__`` with the remaining arguments.
+_KILL_AFTER = (
+    "import os, runpy, signal, sys\n"
+    "mod, cls, meth, key, value, script = sys.argv[1:7]\n"
+    "import importlib\n"
+    "owner = getattr(importlib.import_module(mod), cls)\n"
+    "real = getattr(owner, meth)\n"
+    "def patched(self, row, *a, **k):\n"
+    "    out = real(self, row, *a, **k)\n"
+    "    if str(row.get(key)) == value:\n"
+    "        os.kill(os.getpid(), signal.SIGTERM)\n"
+    "    return out\n"
+    "setattr(owner, meth, patched)\n"
+    "sys.argv = [script, *sys.argv[7:]]\n"
+    "runpy.run_path(script, run_name='__main__')\n")
+
+
+def _killed_script(rel: str, patch: tuple[str, ...], *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT), HYDRA_FULL_ERROR="0")
+    return subprocess.run([sys.executable, "-c", _KILL_AFTER, *patch, str(ROOT / rel), *args], capture_output=True,
+                          text=True, env=env, cwd=cwd, timeout=240)
+
+
+def _tiny_train_args(ds: Path) -> list[str]:
+    """Hydra overrides of a CPU-sized training run (the shapes of ``tests/policy/helpers.tiny_config``)."""
+    return ["device=cpu_smoke", f"task.dataset_path={ds}", "task.image_size=32", "task.obs_down_sample_steps=2",
+            "task.val_ratio=0.25", "policy.encoder.resnet_width=8", "policy.encoder.resnet_blocks=[1,1,1,1]",
+            "policy.down_dims=[32,64]", "policy.diffusion_step_embed_dim=32", "policy.num_inference_steps=4",
+            "policy.noise_scheduler.num_train_timesteps=20", "training.max_steps=6", "training.num_epochs=50",
+            "training.checkpoint_every_steps=2", "training.val_every=0", "training.sample_every=0",
+            "training.progress_bar=false", "device.threads=1"]
+
+
+def test_train_py_sigterm_is_one_line_exit_143_and_the_named_command_resumes(tmp_path):
+    """Before: SIGTERM (``timeout``, ``kill``) during training ended with rc 143 and no line; Ctrl-C with a
+    traceback. Now one line naming the command that resumes (a Hydra-dated folder is named, since a plain rerun
+    would start a new one), and that command finishes the run with every step logged once."""
+    import shlex
+
+    from tests.policy.helpers import make_dataset
+    from umi_aug.policy.workspace import iter_jsonl
+
+    ds = make_dataset(tmp_path / "d.zarr.zip", np.random.default_rng(0))
+    before = snapshot(ds)
+    args = _tiny_train_args(ds)
+    res = _killed_script("train/train.py", ("umi_aug.policy.workspace", "_JsonlLog", "write", "step", "3"), *args,
+                         cwd=tmp_path)
+    assert res.returncode == 143, res.stderr[-3000:]
+    assert "Traceback" not in res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    (run,) = (tmp_path / "outputs").glob("*/*")  # Hydra's dated folder
+    ckpt = run / "checkpoints" / "latest.ckpt"
+    cmd = shlex.join(["python", "train/train.py", *args, f"hydra.run.dir={run}"])
+    assert lines == [f"train/train.py: interrupted (SIGTERM); its checkpoint {ckpt} is kept (steps after it are "
+                     f"trained again): resume with `{cmd}`"]
+    assert ckpt.is_file()
+    argv = shlex.split(cmd)
+    done = _script(argv[1], *argv[2:], cwd=tmp_path)  # the command as printed (python → this interpreter)
+    assert done.returncode == 0, done.stderr[-3000:]
+    steps = [r["step"] for r in iter_jsonl(run / "logs.jsonl") if "train_loss" in r]
+    assert steps == [1, 2, 3, 4, 5, 6]
+    assert snapshot(ds) == before
+
+
+def test_train_py_sigterm_before_the_first_checkpoint_says_there_is_nothing_to_resume(tmp_path):
+    from tests.policy.helpers import make_dataset
+
+    ds = make_dataset(tmp_path / "d.zarr.zip", np.random.default_rng(0))
+    run = tmp_path / "run"
+    res = _killed_script("train/train.py", ("umi_aug.policy.workspace", "_JsonlLog", "write", "step", "1"),
+                         *_tiny_train_args(ds), f"hydra.run.dir={run}", cwd=tmp_path)
+    assert res.returncode == 143, res.stderr[-3000:]
+    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == [
+        f"train/train.py: interrupted (SIGTERM) before its first checkpoint ({run / 'checkpoints' / 'latest.ckpt'} "
+        f"was not written), so there is nothing to resume: rerun into a new folder (hydra.run.dir=<new folder>); "
+        f"{run} holds only the interrupted run's logs"]
+
+
+def test_eval_sim_sigterm_is_one_line_exit_143_and_a_rerun_resumes(tmp_path):
+    """Before: rc 143 and no line (Ctrl-C: a traceback). The rerun of the same command skips the finished
+    configuration."""
+    out = tmp_path / "ev"
+    args = ["policy=hold", "configs=0:3", "horizon=3", "workers=1", "progress=false", f"out_dir={out}"]
+    res = _killed_script("eval/eval_sim.py", ("umi_aug.eval.results", "ResultsLog", "append", "config", "0"), *args,
+                         cwd=ROOT)
+    assert res.returncode == 143, res.stderr[-3000:]
+    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == [
+        f"eval/eval_sim.py: interrupted (SIGTERM); the finished configurations are kept in {out / 'results.jsonl'} "
+        "— rerun the same command to resume"]
+    assert [json.loads(x)["config"] for x in (out / "results.jsonl").read_text().splitlines()] == [0]
+    done = _script("eval/eval_sim.py", *args, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert sorted(json.loads(x)["config"] for x in (out / "results.jsonl").read_text().splitlines()) == [0, 1, 2]
+
+
+# ------------------------------------------------------------------------------------------- square_study.py keys
+@pytest.mark.parametrize("args, msg", [
+    (["out_dirr=x"], "config key 'out_dirr' does not exist; did you mean out_dir? `python eval/square_study.py "
+                     "recipe={recipe} --cfg` prints every key"),
+    (["+n_per_demoo=3"], "config key 'n_per_demoo' does not exist; did you mean n_per_demo? `python "
+                         "eval/square_study.py recipe={recipe} --cfg` prints every key"),
+    (["scene.n_scan_viewz=3"], "{recipe}: config key 'scene.n_scan_viewz' does not exist; did you mean "
+                               "scene.n_scan_views? scene holds fields of SquareSceneConfig: "),
+    (["spartn.strid=3"], "{recipe}: config key 'spartn.strid' does not exist; did you mean spartn.stride? spartn "
+                         "holds fields of SpartnConfig: "),
+    (["train_overrides=[policy=small,training.max_stepz=3]"],
+     "{recipe}: train_overrides: config key 'training.max_stepz' does not exist; did you mean training.max_steps? "
+     "`python train/train.py --cfg job` prints every key"),
+    (["train_overrides=[policy=small,training.max_steps=-3]"],
+     "{recipe}: train_overrides: training.max_steps=-3: must be an integer >= 1, or null to run every epoch of "
+     "training.num_epochs"),
+    (["eval_overrides=[workerz=2]"], "{recipe}: eval_overrides: config key 'workerz' does not exist; did you mean "
+                                     "workers? `python eval/eval_sim.py --cfg job` prints every key"),
+    (["n_per_demo=0"], "{recipe}: n_per_demo = 0: must be >= 1"),
+    (["theta_deg=500"], "{recipe}: theta_deg = 500.0: must be in (0, 180] degrees"),
+    (["eval_workers=0"], "{recipe}: eval_workers = 0: must be >= 1"),
+])
+def test_square_study_refuses_unknown_keys_and_bad_values_before_any_work(tmp_path, args, msg):
+    """Before: an override typo gave a 3-line OmegaConf message; a typo in ``scene``/``spartn`` or in the recipe's
+    ``train_overrides``/``eval_overrides`` (and ``training.max_steps=-3``) passed, to fail (or train silently)
+    after hours of data generation."""
+    recipe = ROOT / "configs" / "square_study" / "cpu.yaml"
+    out = tmp_path / "study"
+    res = _script("eval/square_study.py", "recipe=cpu", f"out_dir={out}", f"record_dir={tmp_path / 'rec'}", *args,
+                  cwd=tmp_path)
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert "Traceback" not in res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("square_study: " + msg.format(recipe=recipe)), lines
+    assert not out.exists() and not (tmp_path / "rec").exists()
+
+
+def test_square_study_recipe_file_keys_and_listing(tmp_path):
+    """A key in the recipe file itself is checked too; ``--cfg`` (the hint's command) lists every key; an unknown
+    recipe name lists the shipped ones."""
+    text = (ROOT / "configs" / "square_study" / "cpu.yaml").read_text()
+    mine = tmp_path / "mine.yaml"
+    mine.write_text(text.replace("n_per_demo: 20", "n_per_dem0: 20"))
+    before = snapshot(mine)
+    res = _script("eval/square_study.py", f"recipe={mine}", cwd=tmp_path)
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert res.stderr.strip() == (f"square_study: {mine}: config key 'n_per_dem0' does not exist; did you mean "
+                                  f"n_per_demo? `python eval/square_study.py recipe={mine} --cfg` prints every key")
+    assert snapshot(mine) == before
+    res = _script("eval/square_study.py", "recipe=cpu", "n_per_demo=7", "--cfg", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    import yaml
+
+    shown = yaml.safe_load(res.stdout)
+    assert shown["n_per_demo"] == 7 and shown["spartn"]["stride"] == 2 and "train_overrides" in shown
+    res = _script("eval/square_study.py", "recipe=cpux", cwd=tmp_path)
+    assert res.returncode == 2
+    assert res.stderr.strip() == (f"square_study: recipe=cpux: no recipe file {ROOT / 'configs/square_study/cpux.yaml'}"
+                                  "; the shipped recipes are cpu, paper (or pass a .yaml path)")

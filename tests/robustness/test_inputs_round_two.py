@@ -508,3 +508,323 @@ def test_a_half_written_episode_end_points_at_the_repair_command(ds, tmp_path, c
     rc, _, out = _cli(capsys, "repair", str(ds), "--out", str(tmp_path / "fixed.zarr.zip"))
     assert rc == 0 and "2 episodes, 20 steps" in out
     assert snapshot(ds) == before
+
+
+# ------------------------------------------------------------------------------------------- session inputs (rest)
+def _edit_csv(csv: Path, fn) -> None:
+    from umi_aug.data.trajectory_csv import read_camera_trajectory_csv, write_camera_trajectory_csv
+
+    traj = read_camera_trajectory_csv(csv)
+    fn(traj)
+    write_camera_trajectory_csv(csv, traj)
+
+
+def _augment_refused(capsys, session: Path, tmp_path: Path, stop_before_stages) -> str:
+    """``umi-aug augment SESSION`` → exit 2 with one ``error:`` line before any stage, nothing created; the line."""
+    from tests.robustness.conftest import S
+
+    before = snapshot(session)
+    out = tmp_path / "out.zarr"
+    rc, err, _ = _cli(capsys, "augment", str(session), "--out", str(out), "--image-size", str(S), "--no-pictures")
+    assert rc == 2 and len(err) == 1 and err[0].startswith("umi-aug augment: error: ")
+    assert not out.exists() and not Path(f"{out}.work").exists()
+    assert snapshot(session) == before
+    return err[0][len("umi-aug augment: error: "):]
+
+
+@pytest.mark.parametrize("lost, frames, lines", [(slice(None), "0..7", "2..9"), (slice(2, 5), "2..4", "4..6")])
+def test_lost_csv_rows_in_an_episode_are_named_not_called_a_collision(session, tmp_path, capsys, stop_before_stages,
+                                                                      lost, frames, lines):
+    """Before: all rows lost → exit 0 with a WARNING "not augmented"; 60 lost rows in the approach → the demo failed
+    8x as "collision" (exit 3): the lost rows' placeholder poses (the origin) were planned through."""
+    from tests.robustness.conftest import N_DEMO
+
+    csv = session / "demos" / "demo_00" / "camera_trajectory.csv"
+
+    def lose(t):
+        t.is_lost[lost] = True
+        t.T_world_cam[lost] = np.eye(4)
+
+    _edit_csv(csv, lose)
+    n = len(range(N_DEMO)[lost])
+    assert _augment_refused(capsys, session, tmp_path, stop_before_stages) == (
+        f"{csv}: {n} of the {N_DEMO} rows of the dataset episode's frames are lost by SLAM (is_lost=true): frames "
+        f"{frames} (CSV lines {lines}); a lost row has no pose (augmenting would plan through the placeholder at the "
+        "origin): re-create dataset.zarr.zip with UMI's pipeline (its episodes are the tracked segments: "
+        "06_generate_dataset_plan), or remove demos/demo_00 and its episode")
+
+
+def test_a_5_m_jump_in_a_demo_csv_names_the_row_and_the_jump(session, tmp_path, capsys, stop_before_stages):
+    """Before: exit 3, every attempt a "collision"."""
+    csv = session / "demos" / "demo_00" / "camera_trajectory.csv"
+
+    def jump(t):
+        t.T_world_cam[5:, 1, 3] += 5.0
+
+    _edit_csv(csv, jump)
+    msg = _augment_refused(capsys, session, tmp_path, stop_before_stages)
+    assert msg.startswith(f"{csv}: line 7 (frame 5): the camera pose jumps 5.000 m / 0.0 deg from frame 4 (limits "
+                          "0.05 m, 20.0 deg per frame: faster than a hand moves the gripper — a SLAM relocalisation "
+                          "error): re-run UMI's SLAM for demos/demo_00"), msg
+
+
+def test_a_smooth_demo_csv_passes_the_trajectory_check(session):
+    """The checks' limits leave a real hand-held motion alone (the template's demo moves 14 mm per frame)."""
+    from umi_aug.augment.preflight import check_session_inputs
+
+    check_session_inputs(session)
+
+
+def test_a_missing_raw_video_is_named_as_the_cause(session, tmp_path, capsys, stop_before_stages):
+    """Before: a WARNING "no raw_video.mp4; demo skipped", then the error line blamed the pose matching ("episode 0
+    matches no tracked segment … add UMI's dataset_plan.pkl")."""
+    video = session / "demos" / "demo_00" / "raw_video.mp4"
+    video.unlink()
+    msg = _augment_refused(capsys, session, tmp_path, stop_before_stages)
+    assert msg == (f"{video}: missing; without it the episodes of {session / 'dataset.zarr.zip'} cannot all be matched "
+                   "to the demo videos (each episode is a segment of one demo's raw_video.mp4 with its "
+                   "camera_trajectory.csv): restore the missing file(s), or remove that demo folder and re-create "
+                   "dataset.zarr.zip with UMI")
+    assert "dataset_plan.pkl" not in msg and "matches no tracked segment" not in msg
+
+
+@pytest.mark.parametrize("content", [b"garbage\x00\x01", None])
+def test_a_garbage_dataset_plan_is_refused_even_when_episodes_are_whole_videos(session, tmp_path, capsys,
+                                                                               stop_before_stages, content):
+    """Before: ignored (the episodes happened to match the whole videos, so the plan was never read)."""
+    import pickle
+
+    plan = session / "dataset_plan.pkl"
+    plan.write_bytes(content if content is not None else pickle.dumps({"not": "a plan"}))
+    msg = _augment_refused(capsys, session, tmp_path, stop_before_stages)
+    if content is not None:
+        assert msg == (f"{plan}: unreadable (UnpicklingError: pickle data was truncated); re-run UMI's "
+                       "06_generate_dataset_plan or remove it (episodes are then matched by their TCP poses)")
+    else:
+        assert msg == (f"{plan}: dict planned episodes but {session / 'dataset.zarr.zip'} has 1; the plan belongs to "
+                       "another dataset (07_generate_replay_buffer writes one episode per plan entry)")
+
+
+def test_a_valid_dataset_plan_of_whole_video_episodes_is_used(session):
+    """The plan is now read for whole-video episodes too: a correct one (UMI's TCP poses) still loads."""
+    import pickle
+
+    from tests.robustness.conftest import N_DEMO, S
+    from umi_aug.data import ReplayBuffer, make_umi_episode, read_camera_trajectory_csv
+    from umi_aug.geometry.umi import umi_T_cam_tcp
+    from umi_aug.recon.session_io import load_session
+
+    T = read_camera_trajectory_csv(session / "demos" / "demo_00" / "camera_trajectory.csv").T_world_cam
+    buf = ReplayBuffer.create()  # tx_slam_tag = identity: the TCP in the tag frame is the CSV pose @ T_cam_tcp
+    buf.add_episode(make_umi_episode(T @ umi_T_cam_tcp(), np.full(N_DEMO, 0.05),
+                                     {0: np.zeros((N_DEMO, S, S, 3), np.uint8)}))
+    (session / "dataset.zarr.zip").unlink()
+    buf.save(session / "dataset.zarr.zip")
+    (session / "dataset_plan.pkl").write_bytes(pickle.dumps(
+        [{"cameras": [{"video_path": "demo_00/raw_video.mp4", "video_start_end": (0, N_DEMO)}]}]))
+    sess = load_session(session)
+    assert [(d.name, d.n_frames, d.frame_offset) for d in sess.demos] == [("demo_00", N_DEMO, 0)]
+
+
+# ------------------------------------------------------------------------------------------- disk full, interrupted export
+class _Disk:
+    """zarr's directory-store writer (``DirectoryStore._tofile``) on a disk that fills up: once ``fill()`` was called,
+    ``room`` more chunk/metadata files are written, then every write raises ``OSError(ENOSPC)`` as ``write()`` does
+    on a full disk (no file name) — until ``free()``."""
+
+    def __init__(self, monkeypatch):
+        import zarr
+
+        self.real, self.room, self.filled = zarr.storage.DirectoryStore._tofile, None, False
+        monkeypatch.setattr(zarr.storage.DirectoryStore, "_tofile", staticmethod(self._tofile))
+
+    def _tofile(self, a, fn):
+        import errno
+
+        if self.room is not None:
+            if self.room <= 0:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            self.room -= 1
+        return self.real(a, fn)
+
+    def fill(self, room: int) -> None:
+        self.room, self.filled = room, True
+
+    def free(self) -> None:
+        self.room = None
+
+
+def _light_stages(monkeypatch, session: Path, disk: _Disk, fill_on_job: int):
+    """``augment``'s stages and per-episode planning/rendering replaced by the session dataset's own episode (its
+    frames and poses as the "augmented" episode): the export's real store, records, commit order, disk-full handling
+    and resume run on it in well under a second. The disk fills (once) while job ``fill_on_job``'s episode is
+    written."""
+    import types
+
+    import umi_aug.augment.exporter as ex
+    from umi_aug.data import ReplayBuffer
+
+    ds = session / "dataset.zarr.zip"
+    src = ReplayBuffer.open(ds)
+    ep = src.get_episode(0)
+    lowdim = {k: v for k, v in ep.items() if k != "camera0_rgb"}
+
+    def prepare_session(session_dir, work, cfg, **kw):
+        return types.SimpleNamespace(
+            cfg=cfg, paths={"dataset": str(ds)}, demos=[types.SimpleNamespace(index=0, name="demo_00",
+                                                                              contact_index=2)],
+            augmentable=[0], original=src, stages={}, work_dir=Path(work),
+            umi_episode=lambda episode, d=None: {k: v.copy() for k, v in lowdim.items()})
+
+    def job_task(args):
+        _, j, job, *_ = args
+        planned = types.SimpleNamespace(splice_index=0, seed=100 + j, attempts=1, episode=None,
+                                        n_frames=len(ep["camera0_rgb"]), obstacle=None)
+        return ex._JobResult(j, planned, 1, [], ep["camera0_rgb"].copy(), False, 0.0, 0.0)
+
+    real_append = ex._append_episode
+
+    def append(buf, *a, **k):
+        if not disk.filled and int(buf.meta["aug_job"][-1]) == fill_on_job:  # its record is in: its data is next
+            disk.fill(room=3)
+        return real_append(buf, *a, **k)
+
+    monkeypatch.setattr(ex, "prepare_session", prepare_session)
+    monkeypatch.setattr(ex, "_job_task", job_task)
+    monkeypatch.setattr(ex, "_append_episode", append)
+    return src
+
+
+@pytest.mark.parametrize("name", ["out.zarr", "out.zarr.zip"])
+def test_disk_full_names_the_path_and_validate_says_the_export_is_interrupted(session, tmp_path, capsys, monkeypatch,
+                                                                               name):
+    """Before: ``error: No space left on device`` (no path), and ``umi-aug validate out.zarr`` said ``OK — 2
+    episodes`` for an export that should have 4. Now the path, the free space and what is kept; validate names the
+    export as interrupted (2 of 4, from its own records) and the command that resumes it — which the test runs."""
+    import shlex
+
+    from tests.robustness.conftest import N_DEMO, S
+    from umi_aug.data import ReplayBuffer
+
+    monkeypatch.chdir(tmp_path)
+    disk = _Disk(monkeypatch)
+    src = _light_stages(monkeypatch, session, disk, fill_on_job=1)
+    before = snapshot(session)
+    out = tmp_path / name
+    wpath = out.with_name(out.name + ".partial") if name.endswith(".zip") else out
+    argv = ["augment", str(session), "--out", str(out), "-n", "3", "--image-size", str(S), "--no-pictures"]
+    rc, err, _ = _cli(capsys, *argv, "--restart")  # --restart: not part of the command that resumes
+    assert rc == 2 and len(err) == 1, err
+    what = "the export" if wpath == out else "the export's working store"
+    assert err[0].startswith(f"umi-aug augment: error: {wpath}: disk full while writing {what} (No space left on "
+                             "device; "), err[0]
+    assert err[0].endswith(f" free on it); 2 of the 4 planned episodes are written and kept in {wpath}: free some "
+                           "space (or choose --out/--work on another disk) and rerun the same command to resume")
+    disk.free()
+
+    rc, err, out_text = _cli(capsys, "validate", str(out))
+    cmd = shlex.join(["umi-aug", *argv])
+    head = (f"{out}: an interrupted umi-aug export, not complete: it holds" if wpath == out else
+            f"{out}: not written yet — the export was interrupted; its working store {wpath} holds")
+    assert rc == 2 and err == [f"umi-aug validate: error: {head} 2 of the 4 planned episodes (1 original + 1 "
+                               f"augmented; 1 of 3 augmentation jobs finished); resume it with `{cmd}`: it continues "
+                               "after the last finished job"], err
+    assert "OK" not in out_text
+
+    rc, err, _ = _cli(capsys, *shlex.split(cmd)[1:])  # the advice, followed
+    assert rc == 0, err
+    rc, err, out_text = _cli(capsys, "validate", str(out))
+    assert rc == 0 and err == [] and out_text.startswith(f"{out}: OK — 4 episodes, {4 * N_DEMO} steps")
+    with ReplayBuffer.open(out) as buf:
+        orig = src.get_episode(0)
+        eps = [buf.get_episode(e) for e in range(4)]
+        for got in eps:  # every episode whole, none twice (the episode the disk cut was written again)
+            assert all(np.array_equal(got[k], orig[k]) for k in orig if k != "camera0_rgb")
+        assert np.array_equal(eps[0]["camera0_rgb"], orig["camera0_rgb"])  # the original: copied as stored
+        for got in eps[2:]:  # the new frames: JPEG-XL encoded alike, whether before or after the full disk
+            assert np.array_equal(got["camera0_rgb"], eps[1]["camera0_rgb"])
+        assert buf.meta["aug_job"][:].tolist() == [-1, 0, 1, 2]
+    assert snapshot(session) == before
+
+
+def test_disk_full_in_the_stage_cache_names_the_work_dir(session, tmp_path, capsys, monkeypatch):
+    import errno
+
+    import umi_aug.augment.exporter as ex
+    from tests.robustness.conftest import S
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(ex, "prepare_session", full)
+    out = tmp_path / "out.zarr"
+    rc, err, _ = _cli(capsys, "augment", str(session), "--out", str(out), "--image-size", str(S))
+    assert rc == 2 and len(err) == 1
+    assert err[0].startswith(f"umi-aug augment: error: {out}.work: disk full while writing the stage cache (--work) "
+                             "(No space left on device; ")
+    assert err[0].endswith("free on it); nothing half-written is kept: free some space (or choose --out/--work on "
+                           "another disk) and rerun the same command to resume")
+
+
+def test_a_full_disk_while_caching_a_plan_names_the_file(tmp_path, monkeypatch):
+    """The plan cache is written on the workers: its ``write()`` names no file, the error now does."""
+    import errno
+    import pickle
+
+    import umi_aug.augment.exporter as ex
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pickle, "dump", full)
+    target = tmp_path / "plans" / "k" / "freespace_d000_a00000.pkl"
+    with pytest.raises(OSError) as e:
+        ex._save_planned(target, object())
+    assert (e.value.errno, e.value.filename) == (errno.ENOSPC, str(target))
+    assert not target.exists() and not any(p.is_file() for p in tmp_path.rglob("*"))  # no temporary left
+
+
+def test_validate_an_interrupted_export_of_the_python_api_names_the_cli_way_to_resume(tmp_path):
+    """An export without a recorded command (made before this round, or through ``export()``) still reads as
+    interrupted, with the CLI way to resume."""
+    import zarr
+
+    from umi_aug.augment.exporter import interrupted_export_message
+
+    ds = write_dataset(tmp_path / "x.zarr", lengths=(10,))
+    root = zarr.open_group(str(ds), mode="r+")
+    root.attrs["umi_aug_export"] = {"key": "k", "n_jobs": 4, "n_original": 1, "last_job_done": 0, "failures": [
+        {"job": 0}]}
+    assert interrupted_export_message(ds) == (
+        f"{ds}: an interrupted umi-aug export, not complete: it holds 1 of the 5 planned episodes (1 original + 0 "
+        "augmented; 1 of 4 augmentation jobs finished, 1 failed); resume it by rerunning the `umi-aug augment` command "
+        "that wrote it (the same input, --out and flags, without --restart): it continues after the last finished job")
+    root.attrs["umi_aug_export"] = {"key": "k", "n_jobs": 4, "n_original": 1, "last_job_done": 3, "failures": []}
+    assert interrupted_export_message(ds) is None  # complete
+    assert interrupted_export_message(write_dataset(tmp_path / "plain.zarr", lengths=(10,))) is None
+
+
+def test_a_missing_demo_csv_is_named_when_episodes_are_segments(session, tmp_path, capsys, stop_before_stages):
+    """The same kind as a missing video: episodes shorter than their videos are matched by pose, and a demo without
+    its CSV made that matching fail ("matches no tracked segment") instead of naming the CSV."""
+    csv = session / "demos" / "demo_00" / "camera_trajectory.csv"
+    (session / "dataset.zarr.zip").unlink()
+    write_dataset(session / "dataset.zarr.zip", lengths=(6,))  # a segment of the 8-frame video
+    csv.unlink()
+    msg = _augment_refused(capsys, session, tmp_path, stop_before_stages)
+    assert msg.startswith(f"{csv}: missing; without it the episodes of {session / 'dataset.zarr.zip'} cannot all be "
+                          "matched to the demo videos"), msg
+
+
+def test_a_mapping_csv_without_one_tracked_row_is_refused(session, tmp_path, capsys, stop_before_stages):
+    """Before: accepted; the scan's reconstruction then had no pose to start from."""
+    csv = session / "demos" / "mapping" / "mapping_camera_trajectory.csv"
+
+    def lose(t):
+        t.is_lost[:] = True
+        t.T_world_cam[:] = np.eye(4)
+
+    _edit_csv(csv, lose)
+    assert _augment_refused(capsys, session, tmp_path, stop_before_stages) == (
+        f"{csv}: all 6 rows are lost by SLAM (is_lost=true): the scan has no camera pose to reconstruct from; re-run "
+        "UMI's SLAM mapping")

@@ -191,9 +191,12 @@ def cmd_augment(args: argparse.Namespace) -> int:
     if is_square_demos(args.session):
         source = SquareSource(args.session, SquareInput(episodes=parse_episodes(args.episodes),
                                                         embodiment=not args.no_embodiment))
+    argv = getattr(args, "argv", None)  # the command as typed, without --restart: the one that resumes this export
+    command = (["umi-aug", *[a for a in argv if not (a.startswith("--re") and "--restart".startswith(a))]]
+               if argv else None)  # argparse takes any unique prefix (--re, --rest, ...) for --restart
     s = export(args.session, args.out, cfg, resume=not args.restart, work_dir=args.work,
                pictures=not args.no_pictures, dataset_input=None if source else dataset_input_from_args(args),
-               source=source)
+               source=source, command=command)
     console = Console()
     console.print(summary_table(s))
     for k, v in s.pictures.items():

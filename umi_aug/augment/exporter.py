@@ -21,7 +21,7 @@ replay buffer's UMI codec.
 from __future__ import annotations
 
 import contextlib
-
+import errno
 import json
 import logging
 import os
@@ -43,8 +43,8 @@ from umi_aug.errors import AugmentError, UmiAugError
 from umi_aug.io_utils import (PathLock, atomic_path, atomic_write_text, check_free_space, is_inside,
                                remove_tree_atomically, tree_size)
 
-__all__ = ["ExportSummary", "FAST_PATHS", "export", "export_jobs", "RECORD_KEYS", "read_episode_records",
-           "summary_table"]
+__all__ = ["ExportSummary", "ExportProgress", "FAST_PATHS", "export", "export_jobs", "export_progress",
+           "interrupted_export_message", "RECORD_KEYS", "read_episode_records", "summary_table"]
 
 log = logging.getLogger(__name__)
 
@@ -246,6 +246,86 @@ def _stored_key(path: Path) -> str | None:
         close_store(store)
 
 
+@dataclass(frozen=True)
+class ExportProgress:
+    """How far an umi-aug export got, from its own records (:func:`export_progress`).
+
+    Attributes:
+        n_episodes: committed episodes (``meta/episode_ends``); n_original: the originals among the planned;
+        n_jobs: augmentation jobs planned (one episode each when it does not fail); jobs_done: jobs finished (an
+        episode committed or a failure recorded); n_failed: failed jobs; command / cwd: the command line that wrote
+        it and its working folder (None: an export made before they were recorded, or through the Python API).
+    """
+
+    n_episodes: int
+    n_original: int
+    n_jobs: int
+    jobs_done: int
+    n_failed: int
+    command: tuple[str, ...] | None = None
+    cwd: str | None = None
+
+    @property
+    def planned(self) -> int:
+        """Episodes the export holds when every job succeeds."""
+        return self.n_original + self.n_jobs
+
+    @property
+    def complete(self) -> bool:
+        return self.jobs_done >= self.n_jobs
+
+
+def export_progress(path: str | os.PathLike) -> ExportProgress | None:
+    """The :class:`ExportProgress` of an umi-aug export (a zarr directory or ``.zarr.zip``, read raw and read-only:
+    it may hold an interrupted append), or None when ``path`` is not one (no attribute ``umi_aug_export``, or not
+    a readable store)."""
+    from umi_aug.data.store import close_store, open_store
+
+    try:
+        store, root = open_store(Path(path), mode="r")
+    except UmiAugError:
+        return None
+    try:
+        attrs = dict(root.attrs.get(ATTR, {}))
+        if "n_jobs" not in attrs:
+            return None
+        E = int(root["meta/episode_ends"].shape[0])
+        recs = root["meta/aug_job"][:E] if "aug_job" in root["meta"] else np.zeros(0, np.int64)
+        done = max(int(attrs.get("last_job_done", -1)), int(recs.max()) if len(recs) else -1) + 1
+        cmd = attrs.get("command") or {}
+        return ExportProgress(n_episodes=E, n_original=int(attrs.get("n_original", 0)), n_jobs=int(attrs["n_jobs"]),
+                              jobs_done=done, n_failed=len(attrs.get("failures", [])),
+                              command=tuple(cmd["argv"]) if cmd.get("argv") else None, cwd=cmd.get("cwd"))
+    except (KeyError, ValueError, TypeError):
+        return None
+    finally:
+        close_store(store)
+
+
+def interrupted_export_message(path: str | os.PathLike, shown: str | os.PathLike | None = None) -> str | None:
+    """The one line ``umi-aug validate`` gives for an interrupted umi-aug export at ``path`` (episodes written vs
+    planned, from the export's own records, and the command that resumes it), or None (complete, or not an
+    export). ``shown``: the path the user passed, when that is not ``path`` (a ``.zarr.zip`` not yet written,
+    whose working store ``<out>.partial`` is ``path``)."""
+    import shlex
+
+    st = export_progress(path)
+    if st is None or st.complete:
+        return None
+    head = (f"{shown}: not written yet — the export was interrupted; its working store {path} holds"
+            if shown is not None else f"{path}: an interrupted umi-aug export, not complete: it holds")
+    failed = f", {st.n_failed} failed" if st.n_failed else ""
+    if st.command:
+        where = f" (run in {st.cwd})" if st.cwd and Path(st.cwd) != Path.cwd() else ""
+        how = f"resume it with `{shlex.join(st.command)}`{where}"
+    else:
+        how = ("resume it by rerunning the `umi-aug augment` command that wrote it (the same input, --out and flags, "
+               "without --restart)")
+    return (f"{head} {st.n_episodes} of the {st.planned} planned episodes ({st.n_original} original + "
+            f"{st.n_episodes - st.n_original} augmented; {st.jobs_done} of {st.n_jobs} augmentation jobs "
+            f"finished{failed}); {how}: it continues after the last finished job")
+
+
 @dataclass
 class _JobResult:
     job: int
@@ -305,9 +385,14 @@ def _load_planned(path: Path) -> PlannedEpisode | None:
 
 
 def _save_planned(path: Path, planned: PlannedEpisode) -> None:
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            pickle.dump(planned, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    try:
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                pickle.dump(planned, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    except OSError as exc:
+        if exc.errno in DISK_FULL_ERRNOS and not exc.filename:  # a write() names no file: name the cache file
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+        raise
 
 
 IMAGE_KEY = "camera0_rgb"
@@ -382,7 +467,7 @@ def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, 
 def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: AugmentConfig, *,
            resume: bool = True, work_dir: str | os.PathLike | None = None, progress: bool = True,
            pictures: bool = True, dataset_input=None, fast_paths=None, encode_threads: int | None = None,
-           source=None) -> ExportSummary:
+           source=None, command: list[str] | None = None) -> ExportSummary:
     """Write the original and the augmented episodes of a session to a UMI zarr (``.zarr.zip`` or directory).
 
     Args:
@@ -406,28 +491,68 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
         source: another kind of input that knows its own checks and stages (``check(image_size)``,
             ``fingerprint()``, ``dataset``, ``n_augment(n_episodes)``, ``prepare(work, cfg, progress)``), e.g.
             :class:`umi_aug.augment.square_source.SquareSource` for ``session_dir`` = a square demo folder.
+        command: the command line that runs this export (``["umi-aug", "augment", ...]``, without ``--restart``),
+            kept in the export's records with the working folder: ``umi-aug validate`` names it as the command that
+            resumes an interrupted export.
     Returns:
         :class:`ExportSummary` (also ``<out>.summary.json``).
     Raises:
         AugmentError: stage failures, an existing export of another configuration, mismatched dataset keys, an
             input problem (checked before any compute), an output/work dir that is the input, another run holding
             the output's or work dir's lock (its PID), too little free disk space, ``resume=False`` on a path
-            umi-aug did not write.
+            umi-aug did not write; a full disk during the run (naming the path being written, the free space and the
+            episodes kept: a rerun resumes).
     """
     out = Path(out_path)
     work = Path(work_dir) if work_dir is not None else out.with_name(out.name + ".work")
     _check_paths(Path(session_dir), out, work)
     # one run per output and per work dir: a second run fails at once naming the holder's PID
     work_existed = work.exists()
+    writing = {"path": work, "what": "the stage cache (--work)"}  # what a full disk interrupts (updated by _export)
     try:
         with PathLock(out, "output", AugmentError), PathLock(work, "work dir", AugmentError, inside=True):
             return _export(session_dir, out, work, cfg, resume=resume, progress=progress, pictures=pictures,
                            dataset_input=dataset_input, fast=_fast_paths(fast_paths), encode_threads=encode_threads,
-                           source=source)
+                           source=source, command=command, writing=writing)
+    except OSError as exc:
+        if exc.errno not in DISK_FULL_ERRNOS:
+            raise
+        raise AugmentError(_disk_full_message(exc, writing, _working_path(out))) from exc
     finally:
         if not work_existed:  # the lock made it: a run stopped by an up-front check leaves no empty <out>.work/
             with contextlib.suppress(OSError):
                 work.rmdir()  # only when empty (a stage wrote nothing); never anything else
+
+
+#: errno of a full disk / an exhausted quota.
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+
+def _disk_full_message(exc: OSError, writing: dict, wpath: Path) -> str:
+    """One line for a full disk: the path being written (the file when the error names one), the free space left on
+    its file system, and what is kept — the export's episodes written so far, from its own records."""
+    import shutil
+
+    path = Path(exc.filename) if exc.filename else Path(writing["path"])
+    probe = path
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    try:
+        free = f"{_human_bytes(shutil.disk_usage(probe).free)} free on it"
+    except OSError:
+        free = "free space unknown"
+    st = export_progress(wpath)
+    kept = (f"{st.n_episodes} of the {st.planned} planned episodes are written and kept in {wpath}" if st is not None
+            else "nothing half-written is kept")
+    return (f"{path}: disk full while writing {writing['what']} ({exc.strerror or 'No space left on device'}; "
+            f"{free}); {kept}: free some space (or choose --out/--work on another disk) and rerun the same command "
+            f"to resume")
+
+
+def _human_bytes(n: float) -> str:
+    from umi_aug.io_utils import _human
+
+    return _human(n)
 
 
 def _fast_paths(fast_paths) -> frozenset:
@@ -502,7 +627,7 @@ def _expected_bytes(src: Path, n_jobs_max: int, n_src_eps: int, include_original
 
 def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: bool, progress: bool,
             pictures: bool, dataset_input, fast: frozenset = frozenset(), encode_threads: int | None = None,
-            source=None) -> ExportSummary:
+            source=None, command: list[str] | None = None, writing: dict | None = None) -> ExportSummary:
     from tqdm import tqdm
 
     t_start = time.perf_counter()
@@ -563,9 +688,15 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
     if finished:
         log.info("export: %s is complete for this configuration; nothing to do", out)
         return _finish(out, work, assets, key, jobs, len(jobs), t_start, {}, 0, pictures, read_from=out)
+    writing = writing if writing is not None else {}
+    writing.update(path=wpath, what="the export" if wpath == out else "the export's working store")
     if not wpath.exists():
         _create_store(wpath, assets, key, len(jobs))
     buf, attrs = _open_store(wpath, key)
+    if command is not None and attrs.get("command", {}).get("argv") != list(command):
+        # `umi-aug validate` names it as the command that resumes an interrupted export
+        attrs["command"] = {"argv": list(command), "cwd": os.getcwd()}
+        buf.root.attrs[ATTR] = attrs
     timings = {"scene_s": 0.0, "plan_s": 0.0, "render_s": 0.0, "write_s": 0.0, "encode_s": 0.0}
     frames_rendered = 0
     try:
@@ -656,10 +787,12 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
         from umi_aug.data import ReplayBuffer
 
         t0 = time.perf_counter()
+        writing.update(path=out, what="the .zarr.zip")
         with ReplayBuffer.open(wpath) as final:
             final.save(out)
         remove_tree_atomically(wpath)  # a kill here leaves <out>.partial.tmp-*, never a half-deleted .partial
         timings["write_s"] += time.perf_counter() - t0
+    writing.update(path=out.parent, what=f"the summary and pictures of {out.name}")
     return _finish(out, work, assets, key, jobs, resumed, t_start, timings, frames_rendered, pictures, read_from=out,
                    loop_s=time.perf_counter() - t_start)
 

@@ -3,7 +3,8 @@
 :func:`check_session_inputs` reads a UMI session's ``dataset.zarr.zip`` (readable zip, layout, NaN/Inf, complete
 image-chunk listing) and loads the session through the session reader, which maps every episode onto its demo video
 (a whole video, or UMI's tracked segment of one: :func:`umi_aug.recon.session_io.load_session`) and checks the CSVs
-(columns, monotonic timestamps, rows per video frame; the mapping CSV) and the intrinsics at the frames' size. Each
+(columns, monotonic timestamps, rows per video frame; the mapping CSV) and the intrinsics at the frames' size, then
+the camera poses of every episode's frames (no lost row, no jump: :func:`check_demo_trajectories`). Each
 problem raises one :class:`~umi_aug.errors.AugmentError` naming the file, key, row and value; suspicious-but-legal
 intrinsics (principal point outside the image, large ``|k1|``, focal lengths far from a fisheye's) become warnings.
 """
@@ -15,10 +16,12 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 
 from umi_aug.errors import AugmentError, UmiAugError
 
-__all__ = ["InputCheck", "check_session_inputs", "intrinsics_warnings"]
+__all__ = ["InputCheck", "check_session_inputs", "intrinsics_warnings", "check_demo_trajectories",
+           "demo_trajectory_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +58,72 @@ def intrinsics_warnings(intr, source: str, frame_size: tuple[int, int] | None = 
         out.append(f"{source}: intrinsics are {intr.width}x{intr.height} but the frames are "
                    f"{frame_size[0]}x{frame_size[1]}")
     return out
+
+
+def _frame_ranges(frames: np.ndarray, limit: int = 4) -> str:
+    """``[3, 4, 5, 9]`` → ``"3..5, 9"`` (the first ``limit`` runs, then "…")."""
+    runs, start = [], int(frames[0])
+    for a, b in zip(frames[:-1], frames[1:]):
+        if int(b) != int(a) + 1:
+            runs.append((start, int(a)))
+            start = int(b)
+    runs.append((start, int(frames[-1])))
+    text = ", ".join(f"{a}..{b}" if b > a else f"{a}" for a, b in runs[:limit])
+    return text + (f", … ({len(runs)} runs)" if len(runs) > limit else "")
+
+
+def demo_trajectory_problem(seq, csv: Path) -> str | None:
+    """Why the camera poses of an episode's frames cannot be augmented, or None.
+
+    ``seq``: a demo of :func:`umi_aug.recon.session_io.load_session`, already mapped onto its dataset episode (its
+    frames are the episode's). UMI's episodes are tracked segments (06_generate_dataset_plan drops lost frames), so
+    a lost row inside one — its placeholder pose is the origin — or a jump of the camera between two frames further
+    than a hand moves it (:data:`~umi_aug.augment.dataset_source.MAX_STEP_M` /
+    :data:`~umi_aug.augment.dataset_source.MAX_STEP_DEG` per frame, the plain-dataset check's limits) is a SLAM
+    fault; planned through, either failed minutes later as a "collision". The message names the CSV, its lines
+    and the frames."""
+    from umi_aug.augment.dataset_source import MAX_STEP_DEG, MAX_STEP_M
+
+    off = int(seq.frame_offset)
+    fix = (f"re-create dataset.zarr.zip with UMI's pipeline (its episodes are the tracked segments: "
+           f"06_generate_dataset_plan), or remove demos/{csv.parent.name} and its episode")
+    lost = np.flatnonzero(~np.asarray(seq.valid, bool))
+    if len(lost):
+        return (f"{csv}: {len(lost)} of the {seq.n_frames} rows of the dataset episode's frames are lost by SLAM "
+                f"(is_lost=true): frames {_frame_ranges(lost + off)} (CSV lines {int(lost[0]) + off + 2}.."
+                f"{int(lost[-1]) + off + 2}); a lost row has no pose (augmenting would plan through the placeholder "
+                f"at the origin): {fix}")
+    T = np.asarray(seq.T_world_cam, np.float64)
+    if len(T) < 2:
+        return None
+    step = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+    R_rel = np.einsum("nji,njk->nik", T[:-1, :3, :3], T[1:, :3, :3])
+    ang = np.degrees(np.arccos(np.clip((np.trace(R_rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    jump = np.flatnonzero((step > MAX_STEP_M) | (ang > MAX_STEP_DEG))
+    if not len(jump):
+        return None
+    i = int(jump[0])
+    f = off + i + 1
+    return (f"{csv}: line {f + 2} (frame {f}): the camera pose jumps {step[i]:.3f} m / {ang[i]:.1f} deg from frame "
+            f"{f - 1} (limits {MAX_STEP_M} m, {MAX_STEP_DEG} deg per frame: faster than a hand moves the gripper — "
+            f"a SLAM relocalisation error){f' ({len(jump)} such steps)' if len(jump) > 1 else ''}: re-run UMI's "
+            f"SLAM for demos/{csv.parent.name}, or remove it and its episode")
+
+
+def check_demo_trajectories(sess) -> None:
+    """Raise :class:`AugmentError` for the first demo of ``sess`` (a loaded session) whose episode frames hold a
+    lost row or a pose jump (:func:`demo_trajectory_problem`), and for a mapping CSV without one tracked row."""
+    root = Path(sess.root)
+    m = sess.mapping
+    if m.T_world_cam is not None and not np.asarray(m.valid, bool).any():
+        raise AugmentError(f"{root / 'demos' / 'mapping' / 'mapping_camera_trajectory.csv'}: all {m.n_frames} rows "
+                           f"are lost by SLAM (is_lost=true): the scan has no camera pose to reconstruct from; re-run "
+                           f"UMI's SLAM mapping")
+    for d in sess.demos:
+        csv = Path(d.source).parent / "camera_trajectory.csv"
+        problem = demo_trajectory_problem(d, csv) if d.T_world_cam is not None else None
+        if problem:
+            raise AugmentError(problem)
 
 
 def _dataset_check(ds: Path, image_size: int | None) -> tuple[int, int]:
@@ -121,6 +190,7 @@ def check_session_inputs(session_dir: str | os.PathLike, image_size: int | None 
         raise AugmentError(f"{ds}: {n_eps} episodes but the session's demo videos give {len(sess.demos)} "
                            f"({', '.join(d.name for d in sess.demos) or 'none'}); the dataset belongs to another "
                            f"session")
+    check_demo_trajectories(sess)
     warnings = intrinsics_warnings(sess.intrinsics, f"{root}: intrinsics", None)
     for w in warnings:
         log.warning("%s", w)

@@ -447,6 +447,9 @@ def prepare_session(session_dir: str | os.PathLike, work_dir: str | os.PathLike,
         raise AugmentError(f"{session_dir}: {exc}") from exc
     if any(d.T_world_cam is None or d.gripper_width is None for d in sess.demos):
         raise AugmentError(f"{session_dir}: every demo needs camera_trajectory.csv and widths in dataset.zarr.zip")
+    from umi_aug.augment.preflight import check_demo_trajectories
+
+    check_demo_trajectories(sess)  # a lost row or a pose jump in an episode's frames: named, not a "collision"
     fp = session_fingerprint(session_dir)
     if renders:  # a bad asset name or mesh fails here, before any stage runs (their Gaussians are fitted later)
         check_obstacle_assets(cfg)

@@ -104,18 +104,56 @@ class StudyConfig:
         return Path(self.record_dir) if self.record_dir else self.out
 
 
+#: Where the shipped configs live (``configs/square_study/<recipe>.yaml``, ``configs/train.yaml``).
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+#: Ranges of the recipe's numbers: field → (check, what the message says it must be).
+RECIPE_RANGES: dict[str, tuple[Any, str]] = {
+    "image_size": (lambda v: v >= 8, "must be >= 8 pixels"),
+    "n_per_demo": (lambda v: v >= 1, "must be >= 1"),
+    "theta_deg": (lambda v: 0.0 < v <= 180.0, "must be in (0, 180] degrees"),
+    "radius_m": (lambda v: 0.0 < v < 10.0, "must be in (0, 10) metres"),
+    "sweep_thetas": (lambda v: all(0.0 < float(t) <= 180.0 for t in v), "every angle must be in (0, 180] degrees"),
+    "sweep_size": (lambda v: v >= 1, "must be >= 1"),
+    "augment_workers": (lambda v: v >= 1, "must be >= 1"),
+    "eval_workers": (lambda v: v >= 1, "must be >= 1"),
+    "budget_min": (lambda v: v >= 0.0 and np.isfinite(v), "must be >= 0 minutes (0: no budget)"),
+}
+
+
+def _one_line(exc: Exception) -> str:
+    """An OmegaConf error in one line: ``<key>: <its first line>``."""
+    key = getattr(exc, "full_key", None)
+    first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return f"{key}: {first}" if key else first
+
+
 def load_recipe(path: str | os.PathLike, overrides: list[str] = ()) -> StudyConfig:
-    """Recipe YAML + ``key=value`` overrides (OmegaConf dotlist) → :class:`StudyConfig` (typed, unknown keys
-    rejected with one error naming them)."""
+    """Recipe YAML + ``key=value`` overrides (OmegaConf dotlist; ``+key=value`` alike) → :class:`StudyConfig`,
+    every key checked before any work (issue #32): unknown keys of the overrides, of the recipe file, of ``scene``
+    (:class:`~umi_aug.augment.square_scene.SquareSceneConfig`) and ``spartn``
+    (:class:`~umi_aug.augment.square_variants.SpartnConfig`), the ranges of :data:`RECIPE_RANGES`, and the keys and
+    values of ``train_overrides`` / ``eval_overrides`` as ``train/train.py`` / ``eval/eval_sim.py`` would check
+    them (those run hours later, after the data steps). One :class:`StudyError` line naming the key."""
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
+    from umi_aug.config_keys import check_known_keys, check_override_keys
+
+    overrides = list(overrides)
+    listing = f"`python eval/square_study.py recipe={path} --cfg` prints every key"
+    check_override_keys(overrides, StudyConfig, "eval/square_study.py", StudyError, hint=listing)
+    try:
+        raw = OmegaConf.load(path)
+    except (OSError, OmegaConfBaseException) as exc:
+        raise StudyError(f"square study recipe {path}: cannot be read ({_one_line(exc)})") from None
+    check_known_keys(raw, StudyConfig, "eval/square_study.py", StudyError, hint=listing, where=f"{path}: ")
     try:
         base = OmegaConf.structured(StudyConfig)
-        cfg = OmegaConf.merge(base, OmegaConf.load(path), OmegaConf.from_dotlist(list(overrides)))
+        dotlist = [o[1:] if o.startswith("+") and not o.startswith("++") else o.lstrip("+") for o in overrides]
+        cfg = OmegaConf.merge(base, raw, OmegaConf.from_dotlist(dotlist))
         out = OmegaConf.to_object(cfg)
     except (OSError, OmegaConfBaseException) as exc:
-        raise StudyError(f"square study recipe {path} (overrides {list(overrides)}): {exc}") from None
+        raise StudyError(f"square study recipe {path} (overrides {overrides}): {_one_line(exc)}") from None
     from umi_aug.augment.square_variants import VARIANTS
 
     bad = [v for v in out.variants if v not in VARIANTS]
@@ -123,7 +161,87 @@ def load_recipe(path: str | os.PathLike, overrides: list[str] = ()) -> StudyConf
         raise StudyError(f"{path}: variants {bad} unknown; expected a subset of {list(VARIANTS)}")
     if not out.sizes or min(out.sizes) < 1:
         raise StudyError(f"{path}: sizes = {out.sizes}; expected data sizes >= 1")
+    for key, (ok, want) in RECIPE_RANGES.items():
+        if not ok(getattr(out, key)):
+            raise StudyError(f"{path}: {key} = {getattr(out, key)}: {want}")
+    _check_nested_keys(path, out)
+    _check_train_overrides(path, out)
+    _check_eval_overrides(path, out)
     return out
+
+
+def _check_nested_keys(path, cfg: StudyConfig) -> None:
+    """``scene`` / ``spartn``: dicts of another config's fields (a typo was dropped or failed mid-study)."""
+    import dataclasses
+    import difflib
+
+    from umi_aug.augment.square_scene import SquareSceneConfig
+    from umi_aug.augment.square_variants import SpartnConfig
+
+    for key, schema in (("scene", SquareSceneConfig), ("spartn", SpartnConfig)):
+        fields = [f.name for f in dataclasses.fields(schema)]
+        for k in getattr(cfg, key):
+            if k not in fields:
+                near = difflib.get_close_matches(str(k), fields, n=1)
+                mean = f"did you mean {key}.{near[0]}? " if near else ""
+                raise StudyError(f"{path}: config key '{key}.{k}' does not exist; {mean}{key} holds fields of "
+                                 f"{schema.__name__}: {', '.join(fields)}")
+
+
+def _train_overrides(cfg: StudyConfig) -> list[str]:
+    """The Hydra overrides :func:`train_command` passes to ``train/train.py``, but the run folder and a stand-in
+    dataset path (the variants are written later)."""
+    return ["task=square", "task.dataset_path=variant.zarr.zip", f"task.image_size={cfg.image_size}",
+            *cfg.train_overrides]
+
+
+def _check_train_overrides(path, cfg: StudyConfig) -> None:
+    """``train_overrides``: the keys (``train/train.py``'s own check) and, composed as train.py composes them, the
+    values (:func:`umi_aug.policy.train_checks.check_train_values`)."""
+    from umi_aug.config_keys import check_known_keys, check_override_keys
+    from umi_aug.errors import PolicyError
+    from umi_aug.policy.config import TrainConfig
+
+    try:
+        check_override_keys(cfg.train_overrides, TrainConfig, "train/train.py", PolicyError)
+    except PolicyError as exc:
+        raise StudyError(f"{path}: train_overrides: {exc}") from None
+    try:
+        from hydra import compose, initialize_config_dir
+        from hydra.core.config_store import ConfigStore
+        from hydra.core.global_hydra import GlobalHydra
+    except ImportError:  # pragma: no cover - hydra is a dependency of training; without it train.py cannot run
+        return
+    from omegaconf.errors import OmegaConfBaseException
+
+    from umi_aug.policy.config import structured_config
+    from umi_aug.policy.train_checks import check_train_values
+
+    ConfigStore.instance().store(name="train_schema", node=TrainConfig)
+    if GlobalHydra.instance().is_initialized():  # pragma: no cover - a Hydra app calling this
+        return
+    try:
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            composed = compose("train", overrides=_train_overrides(cfg))
+        check_known_keys(composed, TrainConfig, "train/train.py", PolicyError)
+        check_train_values(structured_config(composed))
+    except PolicyError as exc:
+        raise StudyError(f"{path}: train_overrides: {exc}") from None
+    except (OmegaConfBaseException, ValueError) as exc:  # hydra's own override / composition errors
+        raise StudyError(f"{path}: train_overrides {cfg.train_overrides}: {_one_line(exc)}") from None
+
+
+def _check_eval_overrides(path, cfg: StudyConfig) -> None:
+    """``eval_overrides``: the keys ``eval/eval_sim.py`` checks (``policy=NAME`` is its policy group)."""
+    from umi_aug.config_keys import check_override_keys
+    from umi_aug.errors import EvalError
+    from umi_aug.eval.config import EvalSimConfig
+
+    argv = ["eval_policy=" + a[len("policy="):] if a.startswith("policy=") else a for a in cfg.eval_overrides]
+    try:
+        check_override_keys(argv, EvalSimConfig, "eval/eval_sim.py", EvalError, groups=("eval_policy",))
+    except EvalError as exc:
+        raise StudyError(f"{path}: eval_overrides: {exc}") from None
 
 
 def cell_name(variant: str, n: int, theta: float | None = None) -> str:

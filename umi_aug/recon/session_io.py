@@ -480,7 +480,8 @@ def _tcp_offset() -> float:
 def _assign_episodes(root: Path, demos: list[ImageSequence]) -> list[ImageSequence]:
     """The demo sequences in the order of ``dataset.zarr.zip``'s episodes, each with its gripper widths.
 
-    One episode per whole video (episode lengths = video frames): the demos as they are. Otherwise the episodes
+    One episode per whole video (episode lengths = video frames) and no ``dataset_plan.pkl``: the demos as they are
+    (a plan, when present, is always read and checked: a garbage one is refused, never ignored). Otherwise the episodes
     are UMI's valid SLAM segments (06_generate_dataset_plan: tracked runs of a video, lost frames dropped): each
     episode's segment comes from ``dataset_plan.pkl`` when present, else from its TCP poses
     (:func:`_segments_by_tcp`), and the demo is cropped to it (:meth:`ImageSequence.cropped`; named
@@ -491,11 +492,13 @@ def _assign_episodes(root: Path, demos: list[ImageSequence]) -> list[ImageSequen
     if ep is None:
         return demos
     starts = ep.starts()
-    if len(ep.lengths) == len(demos) and all(int(L) == d.n_frames for L, d in zip(ep.lengths, demos)):
+    has_plan = (root / PLAN_NAME).is_file()  # read (and checked) whenever present: a garbage plan is refused
+    if not has_plan and len(ep.lengths) == len(demos) and all(int(L) == d.n_frames
+                                                              for L, d in zip(ep.lengths, demos)):
         for e, d in enumerate(demos):
             d.gripper_width = ep.width[starts[e]: starts[e] + d.n_frames].copy()
         return demos
-    segs = _segments_from_plan(root, ep, demos) if (root / PLAN_NAME).is_file() else _segments_by_tcp(ep, demos)
+    segs = _segments_from_plan(root, ep, demos) if has_plan else _segments_by_tcp(ep, demos)
     per_demo = np.bincount([di for di, _ in segs], minlength=len(demos))
     out = []
     for e, (di, s) in enumerate(segs):
@@ -586,13 +589,26 @@ def load_session(root: str | os.PathLike, intrinsics: FisheyeIntrinsics | str | 
     if not mdir.is_dir():
         raise ReconError(f"{root}/demos: no mapping/ folder (the scan: {VIDEO_NAME} + mapping_camera_trajectory.csv)")
     mapping = _sequence(mdir, "mapping", mdir / "mapping_camera_trajectory.csv", T_tag_slam)
-    demos = []
+    demos, missing = [], []
     for d in sorted(p for p in (root / "demos").iterdir() if p.is_dir() and p.name.startswith("demo")):
         if not (d / VIDEO_NAME).exists() and not (d / "images").is_dir():
             log.warning("%s: no %s; demo skipped", d, VIDEO_NAME)
+            missing.append(d / VIDEO_NAME)
             continue
         demos.append(_sequence(d, d.name, d / "camera_trajectory.csv", T_tag_slam))
-    demos = _assign_episodes(root, demos)
+        if demos[-1].T_world_cam is None:
+            missing.append(d / "camera_trajectory.csv")
+    try:
+        demos = _assign_episodes(root, demos)
+    except ReconError as exc:
+        if not missing:
+            raise
+        # the matching fails because a demo's video (or CSV) is gone: that file is the cause, not the poses
+        more = f" (and {len(missing) - 1} more: {', '.join(str(m) for m in missing[1:4])})" if len(missing) > 1 else ""
+        raise ReconError(f"{missing[0]}: missing{more}; without it the episodes of {root / 'dataset.zarr.zip'} "
+                         f"cannot all be matched to the demo videos (each episode is a segment of one demo's "
+                         f"{VIDEO_NAME} with its camera_trajectory.csv): restore the missing file(s), or remove that "
+                         f"demo folder and re-create dataset.zarr.zip with UMI") from exc
     w, h = mapping.frame_size
     for s in demos:
         if s.frame_size != (w, h):
