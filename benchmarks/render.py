@@ -12,7 +12,7 @@ Tables:
    torch-autograd projection + numba rasteriser with the hand-written backward; loss = sum(w * rgb)) for each
    scene size: frames/s, (Gaussian, pixel) evaluations/s, stage times, visible Gaussians, tile intersections,
    evaluations per pixel.
-2. Ratio to the dense float64 torch reference renderer (:func:`umi_aug.splat.render_reference`), measured in the
+2. Ratio to the dense float64 torch reference renderer (:func:`umi_aug.splat._torch_impl._render_reference`), measured in the
    same run on a subset (``--ref-gaussians`` random Gaussians of each scene at ``--ref-res``², because the dense
    reference costs O(pixels x Gaussians)): time of both on that identical input, and the reference's time
    extrapolated to the full problem (pixels x visible Gaussians at its measured pair rate).
@@ -92,7 +92,8 @@ def main() -> None:
     import torch
 
     from umi_aug.camera import gopro_intrinsics_2_7k
-    from umi_aug.splat import render, render_reference
+    from umi_aug.splat import render
+    from umi_aug.splat._torch_impl import _render_reference as render_reference
     from umi_aug.splat.scenes import room_camera_pose, room_gaussians
 
     torch.set_num_threads(n_threads)

@@ -48,7 +48,7 @@ from umi_aug.traj import (  # noqa: E402
     solve,
 )
 from umi_aug.traj.generate import finish_batch  # noqa: E402
-from umi_aug.traj.objective_ref import solve_scipy_reference  # noqa: E402
+from umi_aug.traj._ref import _solve_scipy_reference as solve_scipy_reference  # noqa: E402
 from umi_aug.traj.plan import validate_waypoints  # noqa: E402
 from umi_aug.traj.solver import levenberg_marquardt  # noqa: E402
 from umi_aug.traj.synthetic import SyntheticTabletop  # noqa: E402

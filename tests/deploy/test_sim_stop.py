@@ -78,7 +78,7 @@ class _Commands:
 def _run(trigger: str, monkeypatch, **over: float):
     """Servo towards TARGET at max_pos_speed and stop at T_STOP by ``trigger``. Returns (config, loop, states
     [all published], the SafetyStop raised or None)."""
-    import umi_aug.deploy.sim_ur5e as sim_mod
+    import umi_aug.deploy.sim_arm as sim_mod
     from umi_aug.deploy.sim_ur5e import SimServoLoop, SimURConfig
 
     if trigger == "watchdog":
@@ -223,7 +223,7 @@ def _runner_standin(cfg, heartbeat, commands, state, stop_event, errors, enabled
     test's shared buffers), reports the child's pid, then beats the heartbeat until it is SIGKILLed."""
     import multiprocessing as mp
 
-    from umi_aug.deploy.sim_ur5e import _sim_robot_main
+    from umi_aug.deploy.sim_arm import _sim_robot_main
 
     p = mp.get_context("spawn").Process(target=_sim_robot_main, daemon=False,
                                         args=(cfg, heartbeat, commands, state, stop_event, errors, enabled,

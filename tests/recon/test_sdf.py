@@ -10,7 +10,7 @@ from umi_aug.errors import ReconError
 from umi_aug.geometry.sdf import SignedDistanceField, check_sdf_output
 from umi_aug.recon.cloud import SceneCloud
 from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, choose_voxel_size, reachable_region
-from umi_aug.recon.sdf_ref import reference_sdf
+from umi_aug.recon._ref import _reference_sdf
 
 
 def _scene_cloud(seed=0, n_plane=6000, n_ball=3000):
@@ -51,13 +51,13 @@ def test_grid_vs_reference_lower_bound_and_error(field):
     h = sdf.voxel
     q = np.random.default_rng(2).uniform(LO, HI, (1500, 3))
     d, g = sdf.distance_and_gradient(q)
-    rd, rg = reference_sdf(q, cloud, h)
+    rd, rg = _reference_sdf(q, cloud, h)
     # the guarantee holds where the sign rule is consistent over the query's cell: check the 8 corners
     lo = sdf.bounds[0]
     i0 = np.floor((q - lo) / h)
     corners = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], float)
     cq = (lo + (i0[:, None, :] + corners[None]) * h).reshape(-1, 3)
-    cs = np.sign(reference_sdf(cq, cloud, h)[0]).reshape(-1, 8)
+    cs = np.sign(_reference_sdf(cq, cloud, h)[0]).reshape(-1, 8)
     consistent = np.all(cs == np.sign(rd)[:, None], axis=1)
     away = (np.abs(rd) > 2 * h) & consistent
     assert away.mean() > 0.5 and consistent.mean() > 0.9

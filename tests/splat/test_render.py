@@ -13,7 +13,8 @@ import numba  # noqa: E402,F401  (the splat extra; a missing install must fail, 
 
 from umi_aug.camera import FisheyeIntrinsics, kb  # noqa: E402
 from umi_aug.errors import SplatError  # noqa: E402
-from umi_aug.splat import Gaussians, render, render_reference  # noqa: E402
+from umi_aug.splat import Gaussians, render  # noqa: E402
+from umi_aug.splat._torch_impl import _render_reference  # noqa: E402
 from umi_aug.splat.scenes import random_gaussians, room_camera_pose, room_gaussians  # noqa: E402
 from tests.splat._helpers import gopro_small, random_kb_intrinsics, random_pose, rays_at, single_gaussian  # noqa: E402
 
@@ -34,7 +35,7 @@ def test_fast_matches_reference_float64(rng, filt, which_intr):
     for _ in range(2):
         g, T, bg = _scene(rng, intr)
         out = render(g, T, intr, bg, filter=filt)
-        ref = render_reference(g, T, intr, bg, filter=filt)
+        ref = _render_reference(g, T, intr, bg, filter=filt)
         assert out.meta["n_visible"] > 10
         for name in ("rgb", "alpha", "ray_depth"):
             a, b = getattr(out, name), getattr(ref, name)
@@ -52,7 +53,7 @@ def test_fast_matches_reference_float32(rng, filt):
     for _ in range(3):
         g, T, bg = _scene(rng, intr, n=80, dtype=torch.float32)
         out = render(g, T, intr, bg, filter=filt)
-        ref = render_reference(g, T, intr, bg, filter=filt)
+        ref = _render_reference(g, T, intr, bg, filter=filt)
         amb = ref.meta["near_threshold"]
         n_amb += int(amb.sum())
         n_px += amb.numel()
@@ -121,7 +122,7 @@ def test_isotropic_gaussian_on_axis_is_the_analytic_footprint():
         assert out.alpha[16, 20].item() == pytest.approx(o, rel=1e-12)
         np.testing.assert_allclose(out.rgb[16, 20].numpy(), o * c, rtol=1e-12)
         assert out.ray_depth[16, 20].item() == pytest.approx(z, rel=1e-12)
-        np.testing.assert_allclose(out.alpha.numpy(), render_reference(g, np.eye(4), intr, filter=filt).alpha.numpy(),
+        np.testing.assert_allclose(out.alpha.numpy(), _render_reference(g, np.eye(4), intr, filter=filt).alpha.numpy(),
                                    atol=1e-12)
     # exact: sigma small enough that the footprint lies inside the small-angle region -> matches to 1e-6
     g = single_gaussian([0, 0, 10.0], [0.1] * 3, opacity=0.5)
@@ -152,7 +153,7 @@ def test_gaussian_far_off_axis_lands_on_the_kb_pixel(rng, theta_deg):
     iu, iv = int(round(uv[0])), int(round(uv[1]))
     assert a[iv, iu] > 0.3
     assert out.ray_depth[iv, iu].item() == pytest.approx(dist, rel=1e-9)
-    np.testing.assert_allclose(a, render_reference(g, np.eye(4), intr, filter="inria").alpha.numpy(), atol=1e-10)
+    np.testing.assert_allclose(a, _render_reference(g, np.eye(4), intr, filter="inria").alpha.numpy(), atol=1e-10)
 
 
 def gopro_intrinsics_big() -> FisheyeIntrinsics:
@@ -185,7 +186,7 @@ def test_occlusion_uses_ray_distance_beyond_90_degrees():
     r, _, b = out.rgb[v, u].tolist()
     assert r > 0.9 and b < 0.1
     assert out.ray_depth[v, u].item() < 1.0
-    np.testing.assert_allclose(out.rgb.numpy(), render_reference(g, np.eye(4), intr, filter="none").rgb.numpy(),
+    np.testing.assert_allclose(out.rgb.numpy(), _render_reference(g, np.eye(4), intr, filter="none").rgb.numpy(),
                                atol=1e-10)
 
 
@@ -246,7 +247,7 @@ def test_extreme_gaussians_no_nan(dtype, filt):
     for i in (1, 2, 3, 4, 9):
         assert all(gr[i].abs().max().item() == 0.0 for gr in grads)
     if dtype == torch.float64:
-        ref = render_reference(g, np.eye(4), intr, (0.1, 0.2, 0.3), filter=filt)
+        ref = _render_reference(g, np.eye(4), intr, (0.1, 0.2, 0.3), filter=filt)
         tol = 1e-9 if filt != "none" else 1e-6
         assert (out.rgb - ref.rgb).abs().max().item() < tol
         rl = ref.rgb.sum() + ref.alpha.sum() + ref.ray_depth.sum()

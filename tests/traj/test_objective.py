@@ -8,7 +8,7 @@ import pytest
 from umi_aug.traj import TrajConfig
 from umi_aug.traj.init_guess import straight_line_guess
 from umi_aug.traj.objective import evaluate, funnel_weights, smooth_hinge, smoothing_matrices
-from umi_aug.traj.objective_ref import cost_reference, derivatives_reference, gradient_reference, terms_reference
+from umi_aug.traj._ref import _cost_reference, _derivatives_reference, _gradient_reference, _terms_reference
 from tests.traj._helpers import RADIUS, THETA_50, obstacle_problem, perturbed, synthetic
 from umi_aug.traj import ConvexObstacle, TrajProblem, TrajScene
 
@@ -51,13 +51,13 @@ def test_fast_objective_matches_reference(rng, eta):
     ev = evaluate(data, X[:, :, :3, 3], X[:, :, :3, :3])
     active = {"collision": 0, "obstacle": 0, "render": 0}
     for b in range(len(X)):
-        ref = terms_reference(data, X[b])
+        ref = _terms_reference(data, X[b])
         for k, v in ref.items():
             assert ev.terms[k][b] == pytest.approx(v, rel=1e-10, abs=1e-15), k
             if k in active and v > 0:
                 active[k] += 1
-        assert ev.cost[b] == pytest.approx(cost_reference(data, X[b]), rel=1e-10)
-        g, H = derivatives_reference(data, X[b])
+        assert ev.cost[b] == pytest.approx(_cost_reference(data, X[b]), rel=1e-10)
+        g, H = _derivatives_reference(data, X[b])
         np.testing.assert_allclose(ev.grad[b], g, rtol=1e-5, atol=1e-6 * np.abs(g).max())
         np.testing.assert_allclose(_dense(ev.hess[b]), H, rtol=1e-5, atol=1e-6 * np.abs(H).max())
     assert active["obstacle"] > 0  # the comparison exercised the hinge
@@ -72,10 +72,10 @@ def test_scene_collision_term_matches_reference_when_active(rng):
     data = pb.objective_data
     ev = evaluate(data, X[:, :, :3, 3], X[:, :, :3, :3])
     for b in range(2):
-        ref = terms_reference(data, X[b])
+        ref = _terms_reference(data, X[b])
         assert ref["collision"] > 0
         assert ev.terms["collision"][b] == pytest.approx(ref["collision"], rel=1e-10)
-        g = gradient_reference(data, X[b])
+        g = _gradient_reference(data, X[b])
         np.testing.assert_allclose(ev.grad[b], g, rtol=1e-5, atol=1e-6 * np.abs(g).max())
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
+from umi_aug.config_check import is_positive
 from umi_aug.errors import CameraError
 from umi_aug.io_utils import atomic_write_text
 
@@ -73,7 +74,7 @@ def _real(path: Path, key: str, value: Any) -> float:
 def _posint(path: Path, key: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not float(value).is_integer():
         raise CameraError(f"{path}: key {key!r} must be a positive integer, got {value!r}")
-    if value <= 0:
+    if not is_positive(value):
         raise CameraError(f"{path}: key {key!r} must be a positive integer, got {value!r}")
     return int(value)
 

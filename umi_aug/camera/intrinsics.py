@@ -16,6 +16,7 @@ from typing import Any, Literal, Mapping
 import numpy as np
 
 from umi_aug.camera.kb_poly import THETA_PI_MARGIN, kb_theta_d, theta_fold as _theta_fold
+from umi_aug.config_check import is_positive
 from umi_aug.errors import CameraError
 
 __all__ = ["FisheyeIntrinsics", "PixelCentre"]
@@ -43,7 +44,7 @@ def _as_float(name: str, value: Any, positive: bool = False) -> float:
     v = float(value)
     if not math.isfinite(v):
         raise CameraError(f"FisheyeIntrinsics.{name} must be finite, got {value!r}")
-    if positive and v <= 0.0:
+    if positive and not is_positive(v):
         raise CameraError(f"FisheyeIntrinsics.{name} must be > 0, got {value!r}")
     return v
 

@@ -19,6 +19,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from umi_aug.config_check import reject_unknown_keys
 from umi_aug.deploy.camera import CameraConfig, UVCCamera
 from umi_aug.deploy.clock import MonotonicClock
 from umi_aug.deploy.interpolator import pose_distance
@@ -28,7 +29,6 @@ from umi_aug.deploy.runner import ObsSpec, PolicyRunner, Preflight, RunnerConfig
 from umi_aug.deploy.safety import SafetyLimits
 from umi_aug.deploy.ur_rtde import URConfig, URRTDERobot
 from umi_aug.deploy.wsg50 import WSG50Gripper, WSGConfig
-from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
 
 __all__ = ["run_deploy"]
@@ -41,7 +41,7 @@ RUN_KEYS = {"robot", "policy", "checkpoint", "out_dir", "dry_run", "confirm", "d
 
 
 def _camera_cfg(m: Mapping[str, Any]) -> CameraConfig:
-    reject_unknown_keys(m, CameraConfig.__dataclass_fields__, "robot.camera")
+    reject_unknown_keys(m, CameraConfig.__dataclass_fields__, "robot.camera", DeployError)
     return CameraConfig(**{k: (str(v) if k == "device" else v) for k, v in m.items()})
 
 
@@ -170,9 +170,7 @@ def run_deploy(cfg: Mapping[str, Any], ask: Callable[[str], str | None] | None =
         DeployError: bad config, not confirmed, or a safety stop (after the robot was halted and the episode
             recorded).
     """
-    extra = sorted(set(cfg) - RUN_KEYS)
-    if extra:
-        raise DeployError(f"deploy config: unknown key(s) {extra}; known: {sorted(RUN_KEYS)}")
+    reject_unknown_keys(cfg, RUN_KEYS, "deploy config", DeployError)
     rc = cfg.get("robot") or {}
     unknown = sorted(set(rc) - {"backend", "robot", "gripper", "camera", "safety"})
     if unknown:

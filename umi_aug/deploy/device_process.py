@@ -39,7 +39,7 @@ def child_setup(parent_pid: int, death_signal: int = signal.SIGKILL) -> None:
         parent_pid: the runner's pid.
         death_signal: the signal the kernel sends this process when the runner dies. SIGKILL (default) for
             children that have nothing to wind down; the simulated arm asks for SIGTERM and handles it by
-            decelerating to rest first (:func:`umi_aug.deploy.sim_ur5e.stop_on_signal`, with a SIGALRM backstop),
+            decelerating to rest first (:func:`umi_aug.deploy.sim_arm.stop_on_signal`, with a SIGALRM backstop),
             as the real arm's own program does when ur-rtde's watchdog fires.
     """
     from umi_aug.augment.executor import PR_SET_PDEATHSIG, die_with_parent

@@ -12,8 +12,7 @@ import cv2
 import numpy as np
 
 from umi_aug.errors import DeployError
-from umi_aug.geometry.se3 import pos_rotvec_to_pose, pose_to_pos_rotvec
-from umi_aug.geometry.interp import interpolate_pose
+from umi_aug.geometry.se3 import pos_rotvec_to_pose
 from umi_aug.geometry.so3 import so3_exp, so3_log
 
 __all__ = ["PoseTrajectoryInterpolator", "ScalarTrajectoryInterpolator", "pose_distance"]
@@ -48,7 +47,7 @@ class PoseTrajectoryInterpolator:
         self.poses = p
         self._T = pos_rotvec_to_pose(p)
         # per segment: log(R_iᵀ R_{i+1}) once, so a query costs one exp + one log (the 500 Hz servo loop);
-        # the same slerp as interpolate_pose (the reference, reference_call)
+        # the same slerp as interpolate_pose (the reference: umi_aug.deploy._ref._interpolator_reference)
         R = self._T[:, :3, :3]
         self._delta = so3_log(np.swapaxes(R[:-1], -1, -2) @ R[1:]) if len(t) > 1 else np.zeros((0, 3))
 
@@ -78,16 +77,6 @@ class PoseTrajectoryInterpolator:
                 R = self._T[i, :3, :3] @ so3_exp(s[:, None] * self._delta[i])
                 R = np.where((s == 1.0)[:, None, None], self._T[i + 1, :3, :3], R)
                 out = np.concatenate([pos, so3_log(R)], 1)
-        return out[0] if np.ndim(t) == 0 else out
-
-    def reference_call(self, t: float | np.ndarray) -> np.ndarray:
-        """:meth:`__call__` through :func:`umi_aug.geometry.interp.interpolate_pose` (slow reference)."""
-        ts = np.atleast_1d(np.asarray(t, np.float64))
-        if len(self.times) == 1:
-            out = np.repeat(self.poses, len(ts), axis=0)
-        else:
-            i, s = self._segment(ts)
-            out = pose_to_pos_rotvec(interpolate_pose(self._T[i], self._T[i + 1], s))
         return out[0] if np.ndim(t) == 0 else out
 
     def trim(self, start: float, end: float) -> "PoseTrajectoryInterpolator":

@@ -18,8 +18,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from umi_aug.config_check import reject_unknown_keys
 from umi_aug.deploy.interpolator import pose_distance
-from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
 from umi_aug.geometry.so3 import so3_exp
 
@@ -119,7 +119,7 @@ class SafetyLimits:
         :class:`DeployError` naming them. With ``tcp_offset`` (m) every corner of the workspace box must lie
         within the arm's reach: ``UR5E_REACH_M + tcp_offset`` from the shoulder (``UR5E_SHOULDER_HEIGHT_M``
         above the base origin)."""
-        reject_unknown_keys(m, cls.__dataclass_fields__, where)
+        reject_unknown_keys(m, cls.__dataclass_fields__, where, DeployError)
         lim = cls(**{k: (list(v) if k.startswith("workspace") else float(v)) for k, v in m.items()})
         lo, hi = np.asarray(lim.workspace_min, float), np.asarray(lim.workspace_max, float)
         if lo.shape != (3,) or hi.shape != (3,) or not (np.isfinite(lo).all() and np.isfinite(hi).all()

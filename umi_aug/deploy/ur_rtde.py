@@ -26,12 +26,12 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from umi_aug.config_check import reject_unknown_keys
 from umi_aug.deploy.clock import Clock, MonotonicClock
 from umi_aug.deploy.device_process import DeviceProcess, child_setup, parent_alive, poll_enable
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
 from umi_aug.deploy.safety import SafetyStop, check_robot_limits
 from umi_aug.deploy.shared_state import SharedStateBuffer
-from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
 
 __all__ = ["URConfig", "URServoLoop", "URRTDERobot", "SAFETY_MODES", "STATE_FIELDS"]
@@ -92,7 +92,7 @@ class URConfig:
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], where: str = "robot") -> "URConfig":
         """Validated config; one :class:`DeployError` naming the key and value otherwise."""
-        reject_unknown_keys(m, cls.__dataclass_fields__, where)
+        reject_unknown_keys(m, cls.__dataclass_fields__, where, DeployError)
         c = cls(**{k: (list(v) if k in ("joints_init", "rtde_modules") and v is not None else v)
                    for k, v in m.items()})
         if c.robot_type not in CONTROL_RATE_HZ:
@@ -272,7 +272,7 @@ class URRTDERobot(DeviceProcess):
 
     #: the child's entry point ``main(cfg, heartbeat, commands, state, stop_event, errors, enabled, parent_pid)``
     #: (:class:`~umi_aug.deploy.device_process.DeviceProcess`); the simulated UR5e
-    #: (:class:`umi_aug.deploy.sim_ur5e.SimUR5eRobot`) swaps in its own servo loop, everything else is shared
+    #: (:class:`umi_aug.deploy.sim_arm.SimUR5eRobot`) swaps in its own servo loop, everything else is shared
     process_main = staticmethod(_process_main)
 
     def __init__(self, cfg: Any, ctx: Any = None, capacity: int = 2048, connect_timeout_s: float = 10.0,

@@ -21,11 +21,11 @@ import time
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from umi_aug.config_check import reject_unknown_keys
 from umi_aug.deploy.device_process import DeviceProcess, child_setup, parent_alive, poll_enable
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
 from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
-from umi_aug.deploy.config_check import reject_unknown_keys
 from umi_aug.errors import DeployError
 
 __all__ = ["crc16", "encode_message", "decode_stream", "Status", "WSG50Driver", "WSGConfig", "WSG50Gripper",
@@ -230,7 +230,7 @@ class WSGConfig:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], where: str = "gripper") -> "WSGConfig":
-        reject_unknown_keys(m, cls.__dataclass_fields__, where)
+        reject_unknown_keys(m, cls.__dataclass_fields__, where, DeployError)
         c = cls(**dict(m))
         if not (0 < c.frequency <= 100 and c.max_speed > 0):
             raise DeployError(f"{where}: frequency must be in (0, 100] Hz and max_speed > 0, got {c.frequency}, "

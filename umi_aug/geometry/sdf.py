@@ -15,6 +15,7 @@ from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
+from umi_aug.config_check import is_positive
 from umi_aug.errors import GeometryError
 from umi_aug.geometry._checks import as_float
 
@@ -76,7 +77,7 @@ def _positive(v, name: str, who: str, allow_zero: bool = False) -> float:
         f = float(v)
     except (TypeError, ValueError) as exc:
         raise GeometryError(f"{who}: `{name}` must be a float (metres), got {v!r}") from exc
-    if not np.isfinite(f) or f < 0.0 or (f == 0.0 and not allow_zero):
+    if not is_positive(f, allow_zero=allow_zero):
         raise GeometryError(f"{who}: `{name}` is {v!r}; expected a finite value {'>=' if allow_zero else '>'} 0")
     return f
 

@@ -21,7 +21,6 @@ from umi_aug.recon.obstacles import (
 )
 from umi_aug.recon.pipeline import ReconConfig, ReconOutput, first_close_index, reconstruct_session
 from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, choose_voxel_size, reachable_region
-from umi_aug.recon.sdf_ref import reference_sdf
 from umi_aug.recon.session_io import ImageSequence, SessionData, load_session
 from umi_aug.recon.sfm import SfmConfig, SfmResult, colmap_camera_params, feature_mask, run_sfm
 
@@ -32,7 +31,7 @@ __all__ = [
     "PROCEDURAL_ASSETS", "ObstacleAsset", "ObstaclePlacement", "load_mesh_asset", "obstacle_hull_sdf",
     "packaged_mesh_assets", "procedural_asset", "sample_obstacle_placement",
     "ReconConfig", "ReconOutput", "first_close_index", "reconstruct_session",
-    "VoxelSDF", "build_scene_sdf", "choose_voxel_size", "reachable_region", "reference_sdf",
+    "VoxelSDF", "build_scene_sdf", "choose_voxel_size", "reachable_region",
     "ImageSequence", "SessionData", "load_session",
     "SfmConfig", "SfmResult", "colmap_camera_params", "feature_mask", "run_sfm",
 ]

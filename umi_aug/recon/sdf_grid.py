@@ -21,7 +21,7 @@ Construction (:func:`build_scene_sdf`), from a point cloud with oriented normals
   the 1-Lipschitz extension ``sdf(clamp(p)) − ‖p − clamp(p)‖`` (still a lower bound; its gradient points back into
   the region).
 
-The slow reference with the same sign rule is :func:`umi_aug.recon.sdf_ref.reference_sdf`.
+The slow reference with the same sign rule is :func:`umi_aug.recon._ref._reference_sdf`.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@
 * :func:`render`: exact Kannala–Brandt EWA splatting (Jacobian of the full KB model, ray-distance ordering so
   Gaussians beyond 90 deg render, culling at the fold-over angle), 16x16-tile numba rasteriser, differentiable
   through a hand-written backward (:class:`RasterizeGaussians`) plus torch autograd for the projection.
-* :func:`render_reference`: the dense float64 torch oracle.
+* :mod:`umi_aug.splat._torch_impl`: the slow references (the dense float64 torch oracle of :func:`render`).
 * :mod:`umi_aug.splat.scenes`: procedural Gaussian scenes for tests and benchmarks.
 
 * :func:`render_composed` / :class:`RenderCache`: a scene plus rigidly placed obstacle Gaussian sets, without
@@ -27,7 +27,6 @@ _LAZY = {
     "Projected": "project", "project_gaussians": "project",
     "eval_sh": "sh", "rgb_to_sh": "sh", "sh_basis": "sh",
     "render": "renderer", "RasterizeGaussians": "renderer", "RenderOutput": "renderer",
-    "render_reference": "_torch_impl",
     "render_composed": "compose", "PlacedGaussians": "compose", "RenderCache": "compose",
     "render_with_backend": "gsplat_backend",
     "SplatTrainConfig": "train", "TrainView": "train", "SplatTrainResult": "train", "train_splat": "train",

@@ -1,4 +1,11 @@
-"""Dense float64 pure-torch reference renderer (the oracle of the numba fast path; gsplat ``_torch_impl`` style).
+"""Slow references of the splat stage (gsplat ``_torch_impl`` style: private, for tests and benchmarks only).
+
+* :func:`_render_reference` mirrors :func:`umi_aug.splat.renderer.render` (the numba fast path) and
+  :func:`_project_reference` its projection :func:`umi_aug.splat.project.project_gaussians`: a dense float64
+  pure-torch renderer, described below.
+* :func:`_ssim_map_reference` mirrors :func:`umi_aug.splat.losses.ssim_map` (explicit SSIM windows).
+
+The dense float64 renderer:
 
 Written for clarity, not speed: every Gaussian is evaluated at every pixel, composited front to back in the
 order of ray distance (distance from the camera centre to the Gaussian's mean, ties by index), with the same
@@ -35,11 +42,10 @@ from umi_aug.splat._constants import (
     TRANSMITTANCE_THRESHOLD,
 )
 from umi_aug.splat.gaussians import Gaussians
+from umi_aug.splat.losses import SSIM_C1, SSIM_C2, SSIM_WINDOW, gaussian_window_1d
 from umi_aug.splat.project import camera_from_pose, check_filter
 from umi_aug.splat.renderer import RenderOutput, _background, _compose
 from umi_aug.splat.sh import eval_sh, view_directions
-
-__all__ = ["render_reference", "project_reference"]
 
 Tensor = torch.Tensor
 
@@ -62,11 +68,11 @@ def _autograd_jacobian(p: Tensor, intr: FisheyeIntrinsics) -> tuple[Tensor, Tens
     return (uv, J) if graph else (uv.detach(), J.detach())
 
 
-def project_reference(
+def _project_reference(
     g: Gaussians, T_world_cam, intr: FisheyeIntrinsics, sh_degree: int, filter: str, near: float, far: float
 ) -> dict[str, Tensor]:
-    """Reference projection (float64): ids, means2d, conics [V, 2, 2], opacities, colors, depths, cov2d [V, 2, 2]
-    of the Gaussians that pass the near/far, ray-angle, determinant and opacity culls."""
+    """Reference of :func:`umi_aug.splat.project.project_gaussians` (float64): ids, means2d, conics [V, 2, 2],
+    opacities, colors, depths, cov2d [V, 2, 2] of the Gaussians that pass the near/far, ray-angle, determinant and opacity culls."""
     dilation, compensate = check_filter(filter)
     R_cw, t_cw, campos = camera_from_pose(T_world_cam, torch.float64)
     with torch.no_grad():
@@ -103,7 +109,7 @@ def project_reference(
     }
 
 
-def render_reference(
+def _render_reference(
     gaussians: Gaussians,
     T_world_cam: Tensor | np.ndarray,  # [4, 4]
     intr: FisheyeIntrinsics,
@@ -115,7 +121,7 @@ def render_reference(
     far: float = DEFAULT_FAR,
     pixel_chunk: int | None = None,
 ) -> RenderOutput:
-    """Dense float64 render with the semantics of :func:`umi_aug.splat.render` (differentiable by autograd).
+    """Reference of :func:`umi_aug.splat.render`: dense float64 render with its semantics (differentiable by autograd).
 
     ``meta["near_threshold"]`` ([H, W] bool) marks pixels where a (Gaussian, pixel) alpha lies within
     ``AMBIGUITY_BAND`` (relative) of ``ALPHA_THRESHOLD`` or a transmittance within it of
@@ -125,7 +131,7 @@ def render_reference(
     H, W = intr.height, intr.width
     deg = g.sh_degree if sh_degree is None else min(int(sh_degree), g.sh_degree)
     bg = _background(background, torch.float64, H, W)
-    proj = project_reference(g, T_world_cam, intr, deg, filter, near, far)
+    proj = _project_reference(g, T_world_cam, intr, deg, filter, near, far)
     order = torch.sort(proj["depths"].detach(), stable=True).indices
     mu = proj["means2d"][order]
     conic = proj["conics"][order]
@@ -175,3 +181,30 @@ def render_reference(
         "projected": proj,
     }
     return RenderOutput(rgb=rgb, alpha=alpha_img, ray_depth=ray_depth, meta=meta)
+
+
+def _ssim_map_reference(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Reference of :func:`umi_aug.splat.losses.ssim_map`: direct float64 SSIM ``[H, W, 3]``: for every pixel and
+    channel, explicit weighted means, variances and covariance over the 11x11 window (pixels outside the image count
+    as 0, like zero padding). Slow; tests only."""
+    x = np.asarray(pred, dtype=np.float64)
+    y = np.asarray(target, dtype=np.float64)
+    H, W, C = x.shape
+    g = gaussian_window_1d(dtype=torch.float64).numpy()
+    win = np.outer(g, g)
+    r = SSIM_WINDOW // 2
+    xp = np.pad(x, ((r, r), (r, r), (0, 0)))
+    yp = np.pad(y, ((r, r), (r, r), (0, 0)))
+    out = np.empty_like(x)
+    for i in range(H):
+        for j in range(W):
+            for c in range(C):
+                a = xp[i : i + 2 * r + 1, j : j + 2 * r + 1, c]
+                b = yp[i : i + 2 * r + 1, j : j + 2 * r + 1, c]
+                mx, my = (win * a).sum(), (win * b).sum()
+                vx = (win * a * a).sum() - mx * mx
+                vy = (win * b * b).sum() - my * my
+                cxy = (win * a * b).sum() - mx * my
+                out[i, j, c] = ((2 * mx * my + SSIM_C1) * (2 * cxy + SSIM_C2)) / (
+                    (mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2))
+    return out

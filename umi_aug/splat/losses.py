@@ -6,8 +6,8 @@ windows are taken, so masked pixels get exactly zero gradient and windows stradd
 true pixels against the target; L1 and the SSIM map are then averaged over the masked-in pixels only.
 
 SSIM: 11x11 Gaussian window (sigma 1.5), ``C1 = 0.01^2``, ``C2 = 0.03^2`` (data range 1), zero padding at the
-image border (INRIA ``utils/loss_utils.py``), separable convolution. :func:`ssim_map_reference` is the direct
-float64 formula (explicit windows) the fast version is tested against.
+image border (INRIA ``utils/loss_utils.py``), separable convolution. :func:`umi_aug.splat._torch_impl._ssim_map_reference`
+is the direct float64 formula (explicit windows) the fast version is tested against.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from umi_aug.errors import SplatError
 
 __all__ = [
-    "SSIM_WINDOW", "SSIM_SIGMA", "gaussian_window_1d", "ssim_map", "ssim_map_reference", "masked_ssim",
+    "SSIM_WINDOW", "SSIM_SIGMA", "gaussian_window_1d", "ssim_map", "masked_ssim",
     "masked_l1", "masked_psnr", "photometric_loss",
 ]
 
@@ -72,32 +72,6 @@ def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
     num = (2.0 * mu_x * mu_y + SSIM_C1) * (2.0 * sxy + SSIM_C2)
     den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sxx + syy + SSIM_C2)
     return (num / den)[0].permute(1, 2, 0)
-
-
-def ssim_map_reference(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Direct float64 SSIM ``[H, W, 3]``: for every pixel and channel, explicit weighted means, variances and
-    covariance over the 11x11 window (pixels outside the image count as 0, like zero padding). Slow; tests only."""
-    x = np.asarray(pred, dtype=np.float64)
-    y = np.asarray(target, dtype=np.float64)
-    H, W, C = x.shape
-    g = gaussian_window_1d(dtype=torch.float64).numpy()
-    win = np.outer(g, g)
-    r = SSIM_WINDOW // 2
-    xp = np.pad(x, ((r, r), (r, r), (0, 0)))
-    yp = np.pad(y, ((r, r), (r, r), (0, 0)))
-    out = np.empty_like(x)
-    for i in range(H):
-        for j in range(W):
-            for c in range(C):
-                a = xp[i : i + 2 * r + 1, j : j + 2 * r + 1, c]
-                b = yp[i : i + 2 * r + 1, j : j + 2 * r + 1, c]
-                mx, my = (win * a).sum(), (win * b).sum()
-                vx = (win * a * a).sum() - mx * mx
-                vy = (win * b * b).sum() - my * my
-                cxy = (win * a * b).sum() - mx * my
-                out[i, j, c] = ((2 * mx * my + SSIM_C1) * (2 * cxy + SSIM_C2)) / (
-                    (mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2))
-    return out
 
 
 def _composite(pred: Tensor, target: Tensor, mask: Tensor | None) -> Tensor:

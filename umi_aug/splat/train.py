@@ -24,7 +24,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -517,15 +517,3 @@ def train_splat(
         write_outputs(out, result, cfg, intr, data, held_idx if held_idx else train_eval_idx, deg_at(cfg.iterations),
                       scale, len(train_idx), len(held_idx))
     return result
-
-
-def config_from_dict(d: dict[str, Any]) -> SplatTrainConfig:
-    """:class:`SplatTrainConfig` from a dict (unknown keys raise :class:`SplatError`)."""
-    names = {f.name for f in fields(SplatTrainConfig)}
-    unknown = sorted(set(d) - names)
-    if unknown:
-        raise SplatError(f"SplatTrainConfig: unknown keys {unknown}")
-    vals = dict(d)
-    if "background" in vals:
-        vals["background"] = tuple(float(x) for x in vals["background"])
-    return replace(SplatTrainConfig(), **vals)

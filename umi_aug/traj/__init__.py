@@ -3,7 +3,7 @@ a θ-cone around the demo's first viewpoint, funnel into its pre-contact pose an
 
 Pipeline: :class:`TrajProblem` (demo + scene SDF + render views + optional obstacle hull) → start sampling →
 initial guesses (straight line + slerp, or RRT* around the inflated obstacle) → batched Levenberg–Marquardt on the
-§3.2 objective (:mod:`.objective`; slow reference :mod:`.objective_ref`) → exact validation → retiming with the
+§3.2 objective (:mod:`.objective`; slow reference :mod:`._ref`) → exact validation → retiming with the
 demo's speed profile and velocity-continuous splicing (:mod:`.splice`) → UMI actions and camera poses.
 :func:`generate` drives it and returns exactly n episodes or raises :class:`umi_aug.errors.TrajError`.
 

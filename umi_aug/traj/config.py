@@ -6,9 +6,9 @@ of T (see :mod:`umi_aug.traj.objective`), so a weight means the same for T = 32 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, fields
 
+from umi_aug.config_check import is_positive
 from umi_aug.errors import TrajError
 from umi_aug.traj import constants as C
 
@@ -22,7 +22,7 @@ def _check_nonneg(obj, names: tuple[str, ...] | None = None, positive: tuple[str
         v = getattr(obj, f.name)
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             continue
-        if not math.isfinite(v) or v < 0 or (f.name in positive and v == 0):
+        if not is_positive(v, allow_zero=f.name not in positive):
             raise TrajError(f"{type(obj).__name__}.{f.name} = {v!r}; expected a finite value "
                             f"{'> 0' if f.name in positive else '>= 0'}")
 

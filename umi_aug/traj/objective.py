@@ -19,7 +19,7 @@ are fixed. Variables: the interior waypoints' left perturbations ``(δt_k, δφ_
   ``(T−1)³ Σ‖Δv‖²``, ``(T−1)⁵ Σ‖Δ²v‖²``.
 
 The Hessian is block-banded: blocks ``(k, k+d)``, d = 0..3, of 6×6 (jerk couples 4 consecutive waypoints).
-A slow per-trajectory loop implementation lives in :mod:`.objective_ref`; tests compare the two.
+A slow per-trajectory loop implementation lives in :mod:`._ref`; tests compare the two.
 """
 
 from __future__ import annotations

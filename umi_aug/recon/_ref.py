@@ -1,5 +1,8 @@
-"""Slow reference of the scene SDF (:mod:`umi_aug.recon.sdf_grid`): brute-force nearest points, same sign rule,
-evaluated exactly at each query (no grid, no offset). For tests and the benchmark only.
+"""Slow references of the recon stage (gsplat ``_torch_impl`` style: private, for tests only).
+
+* :func:`_reference_sdf` mirrors :func:`umi_aug.recon.sdf_grid.build_scene_sdf` (the scene SDF as a
+  :class:`~umi_aug.recon.sdf_grid.VoxelSDF`): brute-force nearest points, same sign rule, evaluated exactly at each
+  query (no grid, no offset).
 """
 
 from __future__ import annotations
@@ -10,12 +13,11 @@ from umi_aug.recon.cloud import SceneCloud
 from umi_aug.recon.constants import SDF_SIGN_NEIGHBOURS
 from umi_aug.recon.sdf_grid import sign_vote
 
-__all__ = ["reference_sdf"]
 
-
-def reference_sdf(points_world: np.ndarray, cloud: SceneCloud, h: float, sign_neighbours: int = SDF_SIGN_NEIGHBOURS,
-                  chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance to the nearest cloud point and its gradient ``s·(q − p*)/‖q − p*‖``.
+def _reference_sdf(points_world: np.ndarray, cloud: SceneCloud, h: float, sign_neighbours: int = SDF_SIGN_NEIGHBOURS,
+                   chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Reference of :func:`umi_aug.recon.sdf_grid.build_scene_sdf`'s field: signed distance to the nearest cloud
+    point and its gradient ``s·(q − p*)/‖q − p*‖``.
 
     Args:
         points_world: np.ndarray,  # [M, 3]

@@ -1,5 +1,9 @@
-"""Slow, obviously-correct reference of :mod:`umi_aug.traj.objective`: one trajectory, plain loops, public
-geometry functions, derivatives by central finite differences. Used only by tests and the benchmark.
+"""Slow references of the trajectory stage (gsplat ``_torch_impl`` style: private, for tests and benchmarks only).
+
+They mirror :func:`umi_aug.traj.objective.evaluate` (residuals, per-term costs, gradient and Gauss–Newton Hessian
+of the §3.2 objective) for ONE trajectory: plain loops, public geometry functions, derivatives by central finite
+differences. :func:`_solve_scipy_reference` is an independent optimiser that mirrors
+:func:`umi_aug.traj.solver.levenberg_marquardt`'s minimisation for cross-checks.
 """
 
 from __future__ import annotations
@@ -7,13 +11,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg import cholesky, solve_triangular
+from scipy.optimize import minimize
 
-from umi_aug.geometry import make_pose, so3_exp, so3_log
-from umi_aug.traj.objective import ObjectiveData
-
-__all__ = ["residuals_reference", "cost_reference", "terms_reference", "gradient_reference",
-           "gn_hessian_reference", "derivatives_reference", "perturb", "solve_scipy_reference"]
-
+from umi_aug.geometry import make_pose, so3_exp, so3_left_jacobian, so3_log
+from umi_aug.traj.objective import ObjectiveData, evaluate
+from umi_aug.traj.solver import damping_metric
 
 def _hinge(x: float, eta: float) -> float:
     """0 below −η, x above η, the quadratic blend (x + η)²/(4η) in between (plain max(0, x) for η = 0)."""
@@ -86,29 +89,30 @@ def _residual_groups(data: ObjectiveData, T_world_cam: np.ndarray) -> dict[str, 
     return groups
 
 
-def residuals_reference(data: ObjectiveData, T_world_cam: np.ndarray) -> np.ndarray:
+def _residuals_reference(data: ObjectiveData, T_world_cam: np.ndarray) -> np.ndarray:
     """All residuals of one trajectory ``[T, 4, 4]`` (cost = Σ r²) → flat float64 array."""
     g = _residual_groups(data, T_world_cam)
     return np.array([x for k in g for x in g[k]], dtype=np.float64)
 
 
-def terms_reference(data: ObjectiveData, T_world_cam: np.ndarray) -> dict[str, float]:
+def _terms_reference(data: ObjectiveData, T_world_cam: np.ndarray) -> dict[str, float]:
     """Per-term cost of one trajectory."""
     return {k: float(np.sum(np.square(v))) for k, v in _residual_groups(data, T_world_cam).items()}
 
 
-def cost_reference(data: ObjectiveData, T_world_cam: np.ndarray) -> float:
-    return float(np.sum(np.square(residuals_reference(data, T_world_cam))))
+def _cost_reference(data: ObjectiveData, T_world_cam: np.ndarray) -> float:
+    """Total cost ``Σ r²`` of one trajectory (mirrors ``evaluate(...).cost``)."""
+    return float(np.sum(np.square(_residuals_reference(data, T_world_cam))))
 
 
-def perturb(T_world_cam: np.ndarray, k: int, delta: np.ndarray) -> np.ndarray:
+def _perturb(T_world_cam: np.ndarray, k: int, delta: np.ndarray) -> np.ndarray:
     """Apply the left perturbation ``(δt, δφ)`` [6] to waypoint ``k``: t += δt, R ← Exp(δφ) R."""
     out = T_world_cam.copy()
     out[k] = make_pose(so3_exp(delta[3:]) @ T_world_cam[k, :3, :3], T_world_cam[k, :3, 3] + delta[:3])
     return out
 
 
-def gradient_reference(data: ObjectiveData, T_world_cam: np.ndarray, h: float = 1e-6) -> np.ndarray:
+def _gradient_reference(data: ObjectiveData, T_world_cam: np.ndarray, h: float = 1e-6) -> np.ndarray:
     """Central-difference gradient w.r.t. the interior waypoints' perturbations → ``[T-2, 6]``."""
     T = data.T
     g = np.zeros((T - 2, 6))
@@ -116,12 +120,13 @@ def gradient_reference(data: ObjectiveData, T_world_cam: np.ndarray, h: float = 
         for i in range(6):
             e = np.zeros(6)
             e[i] = h
-            g[k - 1, i] = (cost_reference(data, perturb(T_world_cam, k, e))
-                           - cost_reference(data, perturb(T_world_cam, k, -e))) / (2 * h)
+            g[k - 1, i] = (_cost_reference(data, _perturb(T_world_cam, k, e))
+                           - _cost_reference(data, _perturb(T_world_cam, k, -e))) / (2 * h)
     return g
 
 
-def derivatives_reference(data: ObjectiveData, T_world_cam: np.ndarray, h: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+def _derivatives_reference(data: ObjectiveData, T_world_cam: np.ndarray,
+                           h: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
     """Both central-difference gradient ``[T-2, 6]`` (of the cost) and GN Hessian ``2 JᵀJ`` from one set of
     perturbed residual evaluations."""
     T = data.T
@@ -131,15 +136,15 @@ def derivatives_reference(data: ObjectiveData, T_world_cam: np.ndarray, h: float
         for i in range(6):
             e = np.zeros(6)
             e[i] = h
-            rp = residuals_reference(data, perturb(T_world_cam, k, e))
-            rm = residuals_reference(data, perturb(T_world_cam, k, -e))
+            rp = _residuals_reference(data, _perturb(T_world_cam, k, e))
+            rm = _residuals_reference(data, _perturb(T_world_cam, k, -e))
             g[k - 1, i] = (np.sum(rp * rp) - np.sum(rm * rm)) / (2 * h)
             cols.append((rp - rm) / (2 * h))
     J = np.stack(cols, axis=1)
     return g, 2.0 * J.T @ J
 
 
-def gn_hessian_reference(data: ObjectiveData, T_world_cam: np.ndarray, h: float = 1e-6) -> np.ndarray:
+def _gn_hessian_reference(data: ObjectiveData, T_world_cam: np.ndarray, h: float = 1e-6) -> np.ndarray:
     """Dense GN Hessian ``2 JᵀJ`` [6(T-2), 6(T-2)] with J by central differences of the residuals."""
     T = data.T
     cols = []
@@ -147,14 +152,14 @@ def gn_hessian_reference(data: ObjectiveData, T_world_cam: np.ndarray, h: float 
         for i in range(6):
             e = np.zeros(6)
             e[i] = h
-            cols.append((residuals_reference(data, perturb(T_world_cam, k, e))
-                         - residuals_reference(data, perturb(T_world_cam, k, -e))) / (2 * h))
+            cols.append((_residuals_reference(data, _perturb(T_world_cam, k, e))
+                         - _residuals_reference(data, _perturb(T_world_cam, k, -e))) / (2 * h))
     J = np.stack(cols, axis=1)
     return 2.0 * J.T @ J
 
 
-def solve_scipy_reference(data: ObjectiveData, T_world_cam: np.ndarray, maxiter: int = 3000,
-                          gtol: float = 1e-12) -> tuple[np.ndarray, float, int]:
+def _solve_scipy_reference(data: ObjectiveData, T_world_cam: np.ndarray, maxiter: int = 3000,
+                           gtol: float = 1e-12) -> tuple[np.ndarray, float, int]:
     """Independent optimiser for cross-checks: scipy L-BFGS-B on ONE trajectory ``[T, 4, 4]``.
 
     Variables ``x = (δt_k, φ_k)`` about the initial waypoints with ``R_k = Exp(φ_k) R̄_k`` (gradient w.r.t. φ by the
@@ -166,13 +171,6 @@ def solve_scipy_reference(data: ObjectiveData, T_world_cam: np.ndarray, maxiter:
     Returns:
         (T_world_cam [T, 4, 4], cost, iterations)
     """
-    from scipy.linalg import cholesky, solve_triangular
-    from scipy.optimize import minimize
-
-    from umi_aug.geometry import so3_left_jacobian
-    from umi_aug.traj.objective import evaluate
-    from umi_aug.traj.solver import damping_metric
-
     T = data.T
     n = T - 2
     t0 = T_world_cam[:, :3, 3].copy()
