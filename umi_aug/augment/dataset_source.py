@@ -40,6 +40,7 @@ import numpy as np
 from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig
 from umi_aug.augment.obstacle_stage import check_obstacle_assets
+from umi_aug.augment.preflight import MAX_STEP_DEG, MAX_STEP_M
 from umi_aug.augment.session_assets import (
     _PROCESS_CACHE,
     OBSTACLE_WORK_KEY,
@@ -59,11 +60,6 @@ log = logging.getLogger(__name__)
 #: Keys a plain UMI dataset must hold (robot 0, camera 0).
 REQUIRED_KEYS: tuple[str, ...] = ("camera0_rgb", "robot0_eef_pos", "robot0_eef_rot_axis_angle",
                                   "robot0_gripper_width")
-#: Consecutive TCP poses further apart than this (metres per frame) mean a lost-tracking gap (UMI drops the
-#: untracked frames, so a gap shows as a jump). 0.05 m/frame = 3 m/s at 60 fps.
-MAX_STEP_M: float = 0.05
-#: Same, rotation (degrees per frame).
-MAX_STEP_DEG: float = 20.0
 #: Shortest episode that can be augmented (frames).
 MIN_EPISODE_FRAMES: int = 16
 #: Cloud points further than this outside the reachable region are left out of the SDF (metres).

@@ -25,6 +25,13 @@ __all__ = ["InputCheck", "check_session_inputs", "intrinsics_warnings", "check_d
 
 log = logging.getLogger(__name__)
 
+#: Consecutive TCP poses further apart than this (metres per frame) mean a lost-tracking gap (UMI drops the
+#: untracked frames, so a gap shows as a jump). 0.05 m/frame = 3 m/s at 60 fps. Shared by the session demos' check
+#: here and the plain-dataset check (:mod:`umi_aug.augment.dataset_source`).
+MAX_STEP_M: float = 0.05
+#: Same, rotation (degrees per frame).
+MAX_STEP_DEG: float = 20.0
+
 #: |k1| above this is unusual for a GoPro-like fisheye (UMI's 2.7k calibration: k1 ≈ 0.02).
 K1_WARN = 0.5
 
@@ -78,11 +85,10 @@ def demo_trajectory_problem(seq, csv: Path) -> str | None:
     ``seq``: a demo of :func:`umi_aug.recon.session_io.load_session`, already mapped onto its dataset episode (its
     frames are the episode's). UMI's episodes are tracked segments (06_generate_dataset_plan drops lost frames), so
     a lost row inside one — its placeholder pose is the origin — or a jump of the camera between two frames further
-    than a hand moves it (:data:`~umi_aug.augment.dataset_source.MAX_STEP_M` /
-    :data:`~umi_aug.augment.dataset_source.MAX_STEP_DEG` per frame, the plain-dataset check's limits) is a SLAM
+    than a hand moves it (:data:`MAX_STEP_M` /
+    :data:`MAX_STEP_DEG` per frame, the plain-dataset check's limits) is a SLAM
     fault; planned through, either failed minutes later as a "collision". The message names the CSV, its lines
     and the frames."""
-    from umi_aug.augment.dataset_source import MAX_STEP_DEG, MAX_STEP_M
 
     off = int(seq.frame_offset)
     fix = (f"re-create dataset.zarr.zip with UMI's pipeline (its episodes are the tracked segments: "
