@@ -208,6 +208,28 @@ def bench_loop(path: Path, variant: dict, steps: int, batch: int, out: Path, ext
     return {"steps_per_s": (steps - 5) / (t[steps] - t[5]), "wall_s": wall, "first_step_s": t[1]}
 
 
+def _alternated_loops(path: Path, runs: dict[str, tuple[dict, dict]], steps: int, rounds: int) -> dict[str, list]:
+    """:func:`bench_loop` for every ``name → (variant, config overrides)``, the names alternated over ``rounds``."""
+    res: dict[str, list] = {k: [] for k in runs}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(rounds):
+            for i, (name, (variant, extra)) in enumerate(runs.items()):
+                res[name].append(bench_loop(path, variant, steps, 64, Path(tmp) / f"{r}_{i}", copy.deepcopy(extra)))
+    return res
+
+
+def _speed_table(res: dict[str, list], label: str) -> None:
+    """Print steps/s of every run, the median's ratio to the first row's, steps/hour and minutes per 1000 steps."""
+    base = np.median([x["steps_per_s"] for x in next(iter(res.values()))])
+    head = f"{label:<48}{'steps/s (runs)':>20}{'×':>7}{'steps/hour':>12}{'min / 1000 steps':>18}"
+    print(head + "\n" + "-" * len(head))
+    for name, xs in res.items():
+        v = [x["steps_per_s"] for x in xs]
+        med = float(np.median(v))
+        print(f"{name:<48}{' / '.join(f'{x:.2f}' for x in v):>20}{med / base:>7.2f}{med * 3600:>12.0f}"
+              f"{1000 / med / 60:>18.2f}")
+
+
 def bench_phases(path: Path, batch: int = 64, reps: int = 8) -> list[tuple[str, float]]:
     """Where one step of the fast loop goes (policy=small, 84², fp32, channels-last): seconds per phase, each
     timed alone over ``reps`` repetitions after a warm-up — the floor the loop's steps/s sits on."""
@@ -295,36 +317,14 @@ def main() -> None:
         print(f"training loop per recipe — batch 64, 84² square demos {args.recipes}, {torch.get_num_threads()} "
               f"threads, {args.loop_steps} steps per run, {args.loop_rounds} rounds alternating")
         fast = LOOP_VARIANTS["+ channels-last ResNet (after, fp32)"]
-        rec: dict[str, list] = {k: [] for k in RECIPES}
-        with tempfile.TemporaryDirectory() as tmp:
-            for r in range(args.loop_rounds):
-                for i, (name, extra) in enumerate(RECIPES.items()):
-                    rec[name].append(bench_loop(Path(args.recipes), fast, args.loop_steps, 64,
-                                                Path(tmp) / f"{r}_{i}", copy.deepcopy(extra)))
-        base = np.median([x["steps_per_s"] for x in rec[next(iter(RECIPES))]])
-        head = f"{'recipe (train.py overrides)':<48}{'steps/s (runs)':>18}{'×':>7}{'min / 1000 steps':>18}"
-        print(head + "\n" + "-" * len(head))
-        for name, xs in rec.items():
-            v = [x["steps_per_s"] for x in xs]
-            med = float(np.median(v))
-            print(f"{name:<48}{' / '.join(f'{x:.2f}' for x in v):>18}{med / base:>7.2f}{1000 / med / 60:>18.2f}")
+        _speed_table(_alternated_loops(Path(args.recipes), {k: (fast, v) for k, v in RECIPES.items()},
+                                       args.loop_steps, args.loop_rounds), "recipe (train.py overrides)")
         return
     if args.loop:
         print(f"training loop — policy=small, batch 64, 84² square demos {args.loop}, {torch.get_num_threads()} "
               f"threads, {args.loop_steps} steps per run, {args.loop_rounds} rounds alternating")
-        res: dict[str, list] = {k: [] for k in LOOP_VARIANTS}
-        with tempfile.TemporaryDirectory() as tmp:
-            for r in range(args.loop_rounds):
-                for name, var in LOOP_VARIANTS.items():
-                    res[name].append(bench_loop(Path(args.loop), var, args.loop_steps, 64,
-                                                Path(tmp) / f"{r}_{len(res[name])}_{abs(hash(name))}"))
-        base = np.median([x["steps_per_s"] for x in res[next(iter(LOOP_VARIANTS))]])
-        head = f"{'variant':<46}{'steps/s (runs)':>24}{'×':>7}{'steps/hour':>12}"
-        print(head + "\n" + "-" * len(head))
-        for name, xs in res.items():
-            v = [x["steps_per_s"] for x in xs]
-            med = float(np.median(v))
-            print(f"{name:<46}{' / '.join(f'{x:.2f}' for x in v):>24}{med / base:>7.2f}{med * 3600:>12.0f}")
+        _speed_table(_alternated_loops(Path(args.loop), {k: (v, {}) for k, v in LOOP_VARIANTS.items()},
+                                       args.loop_steps, args.loop_rounds), "variant")
         rows = bench_phases(Path(args.loop))
         print("\nwhere a step goes (fast loop, fp32; each phase timed alone):")
         for name, sec in rows:
