@@ -66,14 +66,11 @@ if __name__ == "__main__":
     except EvalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
-    from umi_aug.runtime import interruption, terminate_like_ctrl_c
+    from umi_aug.runtime import run_interruptible
 
-    try:
-        with terminate_like_ctrl_c():  # SIGTERM (kill, timeout, a scheduler) ends like Ctrl-C: one line, resumable
-            main()
-    except KeyboardInterrupt as exc:
-        how, code = interruption(exc)
+    def _interrupted(how: str) -> str:
         kept = (f"the finished configurations are kept in {_RUN['out'] / 'results.jsonl'}" if "out" in _RUN
                 else "nothing was evaluated")
-        print(f"eval/eval_sim.py: interrupted ({how}); {kept} — rerun the same command to resume", file=sys.stderr)
-        sys.exit(code)
+        return f"eval/eval_sim.py: interrupted ({how}); {kept} — rerun the same command to resume"
+
+    run_interruptible(main, _interrupted)  # SIGTERM (kill, timeout, a scheduler) ends like Ctrl-C: one line

@@ -83,17 +83,11 @@ def interrupted_line(how: str, argv: list[str]) -> str:
 
 
 if __name__ == "__main__":
-    from umi_aug.runtime import interruption, terminate_like_ctrl_c
+    from umi_aug.runtime import run_interruptible
 
     try:  # before Hydra, whose message for an unknown `key=value` advises `+key=value`
         check_override_keys(sys.argv[1:], TrainConfig, "train/train.py", PolicyError)
     except PolicyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
-    try:
-        with terminate_like_ctrl_c():  # SIGTERM (kill, timeout, a scheduler) ends like Ctrl-C: one line, resumable
-            main()
-    except KeyboardInterrupt as exc:
-        how, code = interruption(exc)
-        print(interrupted_line(how, sys.argv[1:]), file=sys.stderr)
-        sys.exit(code)
+    run_interruptible(main, lambda how: interrupted_line(how, sys.argv[1:]))  # SIGTERM ends like Ctrl-C, resumable

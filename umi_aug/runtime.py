@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from typing import Iterator
+from typing import Any, Callable, Iterator
 
 #: Environment variables that size the BLAS/OpenMP thread pools of numpy, scipy, torch and numba.
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
@@ -58,6 +58,20 @@ def configure_threads(n_threads: int | None = None) -> int:
 class Terminated(KeyboardInterrupt):
     """SIGTERM (``kill``, ``timeout``, a job scheduler), raised like Ctrl-C's KeyboardInterrupt so that every
     ``except KeyboardInterrupt`` clean-up (workers stopped, nothing half-written kept) runs for it too."""
+
+
+def run_interruptible(main: Callable[[], Any], interrupted_line: Callable[[str], str]) -> None:
+    """Run a script's ``main()`` with SIGTERM ending it like Ctrl-C: one line on stderr,
+    ``interrupted_line(how)`` (``how`` = ``"SIGTERM"`` or ``"Ctrl-C"``), and exit code 143 / 130."""
+    import sys
+
+    try:
+        with terminate_like_ctrl_c():
+            main()
+    except KeyboardInterrupt as exc:
+        how, code = interruption(exc)
+        print(interrupted_line(how), file=sys.stderr)
+        sys.exit(code)
 
 
 def _raise_terminated(signum, frame) -> None:  # noqa: ARG001 - signal handler signature
