@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -26,14 +27,31 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-def _run(cmd: list[str], log: Path) -> None:
+def _run(cmd: list[str], log: Path) -> list[float]:
+    """Run ``cmd`` with its output appended to ``log``; return the machine's 1-min load average sampled every 30 s."""
     log.parent.mkdir(parents=True, exist_ok=True)
+    loads: list[float] = []
     with open(log, "a") as fh:
         fh.write(f"\n$ {' '.join(cmd)}\n")
         fh.flush()
-        rc = subprocess.run(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT).returncode
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT)
+        while True:
+            try:
+                rc = proc.wait(timeout=30.0)
+                break
+            except subprocess.TimeoutExpired:
+                loads.append(os.getloadavg()[0])
     if rc:
         raise SystemExit(f"error: `{' '.join(cmd[:3])} …` exited {rc}; see {log}")
+    return loads
+
+
+def _commit() -> str:
+    """The repository commit the curve runs (``+dirty`` when tracked files differ from it), for the record."""
+    def git(*a: str) -> str:
+        return subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    sha = git("rev-parse", "--short", "HEAD") or "unknown"
+    return sha + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
 
 
 def _train_minutes(run_dir: Path) -> float:
@@ -92,13 +110,14 @@ def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -
             print(f"budget of {args.budget_min} min spent; rerun the same command to continue at step {k}")
             return
         ckpt = work / "checkpoints" / f"step{k:07d}.ckpt"
+        loads: list[float] = []
         if not ckpt.exists():
             latest = run_dir / "checkpoints" / "latest.ckpt"
             have = int(load_checkpoint(latest)["pickles"]["global_step"]) if latest.exists() else 0
             if have > k:
                 raise SystemExit(f"error: {latest} is at step {have}, past the curve point {k} it was not kept at")
             if have < k:
-                _run([sys.executable, "train/train.py", "task=square", f"task.dataset_path={files.zarr}",
+                loads = _run([sys.executable, "train/train.py", "task=square", f"task.dataset_path={files.zarr}",
                       f"task.image_size={files.size}", f"hydra.run.dir={run_dir}", f"training.max_steps={args.max_steps}",
                       f"training.pause_at_step={k}", "training.num_epochs=1000000", "training.val_every=0",
                       "training.sample_every=0", "training.checkpoint_every=0",
@@ -116,7 +135,9 @@ def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -
                "n_demos": files.n, "n": s["n"], "success": s["success_rate"], "success_ci95": s["success_wilson95"],
                **{k: s["subgoals"][g]["rate"] for k, g in (("pregrasp", "pregrasp_reached"), ("lifted", "lifted"),
                                                             ("inserted", "inserted"))},
-               "train_overrides": train_over, "eval_configs": args.eval_configs}
+               "train_overrides": train_over, "eval_configs": args.eval_configs, "commit": _commit(),
+               # mean 1-min load average while this slice trained (2 = the 2 cores busy with training alone)
+               "train_load1": round(sum(loads) / len(loads), 2) if loads else None}
         atomic_write_text(record, record.read_text() + json.dumps(row) + "\n" if record.exists()
                           else json.dumps(row) + "\n")
         print(json.dumps(row))
