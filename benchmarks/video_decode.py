@@ -35,7 +35,8 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=2704)
     ap.add_argument("--height", type=int, default=2028)
     a = ap.parse_args()
-    from umi_aug.data.video import read_video_frames, read_video_frames_reference
+    from umi_aug.data._ref import _read_video_frames_reference
+    from umi_aug.data.video import read_video_frames
 
     with tempfile.TemporaryDirectory() as tmp:
         p = Path(tmp) / "raw_video.mp4"
@@ -52,7 +53,7 @@ def main() -> None:
             fast = read_video_frames(p, idx, size)
             tf = time.perf_counter() - t
             t = time.perf_counter()
-            ref = read_video_frames_reference(p, idx, size)
+            ref = _read_video_frames_reference(p, idx, size)
             tr = time.perf_counter() - t
             d = int(np.abs(fast.astype(np.int16) - ref).max())
             sz = "native" if size is None else f"{size[0]}x{size[1]}"

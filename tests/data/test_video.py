@@ -53,10 +53,11 @@ INDEX_SETS = [[], [0], [N - 1], [0, N - 1], list(range(N)), list(range(1, N, 3))
 
 @pytest.mark.parametrize("idx", INDEX_SETS)
 def test_selective_decode_equals_reference_native(video, idx):
-    from umi_aug.data.video import read_video_frames, read_video_frames_reference
+    from umi_aug.data._ref import _read_video_frames_reference
+    from umi_aug.data.video import read_video_frames
 
     fast = read_video_frames(video, idx)
-    ref = read_video_frames_reference(video, idx)
+    ref = _read_video_frames_reference(video, idx)
     assert fast.shape == ref.shape == (len(idx), H, W, 3)
     np.testing.assert_array_equal(fast, ref)  # same decoder, same colour conversion: bit-exact
     assert [_index_of(f) for f in fast] == idx  # frame k of the file is frame index k
@@ -66,11 +67,12 @@ def test_selective_decode_equals_reference_native(video, idx):
 
 @pytest.mark.parametrize("size", [(64, 48), (32, 24), (48, 48), (50, 40), (100, 75)])
 def test_selective_decode_resized_close_to_reference(video, size):
-    from umi_aug.data.video import read_video_frames, read_video_frames_reference
+    from umi_aug.data._ref import _read_video_frames_reference
+    from umi_aug.data.video import read_video_frames
 
     idx = [0, 4, 5, 6, 19, 22]
     fast = read_video_frames(video, idx, size)
-    ref = read_video_frames_reference(video, idx, size)  # full-size decode, crop, cv2.INTER_AREA
+    ref = _read_video_frames_reference(video, idx, size)  # full-size decode, crop, cv2.INTER_AREA
     assert fast.shape == ref.shape == (len(idx), size[1], size[0], 3)
     d = np.abs(fast.astype(int) - ref.astype(int))
     assert d.max() <= 4 and d.mean() < 0.25, (d.max(), d.mean())  # swscale area vs cv2.INTER_AREA rounding

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 import yaml
 
+from umi_aug.deploy.arm_process import STATE_FIELDS
 from umi_aug.deploy.clock import FakeClock
 from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
-from umi_aug.deploy.ur_rtde import STATE_FIELDS
 from umi_aug.errors import DeployError
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -13,11 +13,11 @@ import pytest
 import yaml
 
 from umi_aug.deploy._ref import _interpolator_reference
+from umi_aug.deploy.arm_process import STATE_FIELDS
 from umi_aug.deploy.clock import FakeClock
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator, pose_distance
 from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
-from umi_aug.deploy.ur_rtde import STATE_FIELDS
 from umi_aug.errors import DeployError
 from umi_aug.geometry.se3 import pos_rotvec_to_pose, pose_to_pos_rotvec
 from umi_aug.geometry.so3 import so3_log

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from tests.deploy import fake_rtde
+from umi_aug.deploy.arm_process import STATE_FIELDS
 from umi_aug.deploy.clock import FakeClock
 from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
-from umi_aug.deploy.ur_rtde import STATE_FIELDS, URConfig, URRTDERobot, URServoLoop
+from umi_aug.deploy.ur_rtde import URConfig, URRTDERobot, URServoLoop
 from umi_aug.errors import DeployError
 
 FAKE = ["tests.deploy.fake_rtde", "tests.deploy.fake_rtde"]

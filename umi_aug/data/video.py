@@ -4,8 +4,8 @@ UMI keeps only the GoPro's videos (2.7K, 59.94 fps; umi_stack.md §1); the stage
 fraction of that size. :func:`iter_video_frames` runs ONE sequential ffmpeg pass (the ``imageio-ffmpeg`` binary)
 that keeps only the requested frame indices (``select`` before any other filter, so only those frames are cropped,
 resized and converted) and stops after the last one: the full-size frames never leave ffmpeg.
-:func:`read_video_frames_reference` is the slow obviously-correct path (every frame decoded at full size with the
-plain reader, crop + ``cv2.INTER_AREA`` in numpy/OpenCV), kept for the tests.
+:func:`umi_aug.data._ref._read_video_frames_reference` is the slow obviously-correct path (every frame decoded at
+full size with the plain reader, crop + ``cv2.INTER_AREA`` in numpy/OpenCV) the tests compare against.
 
 Frame indices are 0-based decode (presentation) order, the same ``frame_idx`` UMI's SLAM writes into
 ``camera_trajectory.csv``. Resizing is the full-height centre crop of ``crop_geometry`` followed by an area resize,
@@ -16,6 +16,7 @@ so the intrinsics of the result are ``FisheyeIntrinsics.scaled(w, h)``. Every pr
 from __future__ import annotations
 
 import os
+import pickle
 import re
 import subprocess
 from dataclasses import dataclass
@@ -23,12 +24,12 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
+from tqdm import tqdm
 
 from umi_aug.errors import DatasetError
 
-__all__ = ["VideoInfo", "probe_video", "iter_video_frames", "read_video_frames", "read_video_frames_reference",
-           "select_expression", "VideoWriter", "centre_crop", "DEFAULT_CRF", "inpaint_tag", "read_tag_detections",
-           "TAG_SCALE"]
+__all__ = ["VideoInfo", "probe_video", "iter_video_frames", "read_video_frames", "select_expression", "VideoWriter",
+           "centre_crop", "DEFAULT_CRF", "inpaint_tag", "read_tag_detections", "TAG_SCALE"]
 
 #: libx264 constant rate factor of :class:`VideoWriter` (lower = better). 8 keeps the synthetic session's frames
 #: at least as close to the renders as the JPEG-95 frames it used to write: PSNR against 40 rendered 320x240 scan
@@ -209,42 +210,10 @@ def read_video_frames(path: str | os.PathLike, indices: Sequence[int] | np.ndarr
     out = np.empty((len(idx), h, w, 3), dtype=np.uint8)
     it = iter_video_frames(path, idx, size, info=info, threads=threads)
     if progress:
-        from tqdm import tqdm
-
         it = tqdm(it, total=len(idx), desc=f"decode {Path(path).parent.name}/{Path(path).name}", unit="frame")
     for j, (_, img) in enumerate(it):
         out[j] = img
     return out
-
-
-def read_video_frames_reference(path: str | os.PathLike, indices: Sequence[int] | np.ndarray,
-                                size: tuple[int, int] | None = None) -> np.ndarray:
-    """Reference (slow) path: decode EVERY frame at full size with ``imageio_ffmpeg.read_frames``, keep the
-    requested ones, then crop + ``cv2.resize(INTER_AREA)``. ``[K, h, w, 3]`` uint8 RGB."""
-    import cv2
-    import imageio_ffmpeg
-
-    path = Path(path)
-    idx = _check_indices(path, indices)
-    want = set(idx.tolist())
-    gen = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24")
-    meta = next(gen)
-    W, H = meta["size"]
-    frames = {}
-    for i, raw in enumerate(gen):
-        if i in want:
-            frames[i] = np.frombuffer(raw, dtype=np.uint8).reshape(H, W, 3)
-    missing = [i for i in idx.tolist() if i not in frames]
-    if missing:
-        raise DatasetError(f"{path}: frame {missing[0]} requested but the video has {i + 1} frames")
-    out = []
-    for i in idx.tolist():
-        img = frames[i]
-        if size is not None and tuple(size) != (W, H):
-            x0, y0, cw, ch = centre_crop(W, H, *size)
-            img = cv2.resize(img[y0:y0 + ch, x0:x0 + cw], tuple(int(s) for s in size), interpolation=cv2.INTER_AREA)
-        out.append(img)
-    return np.stack(out) if out else np.zeros((0, H, W, 3), np.uint8)
 
 
 class VideoWriter:
@@ -299,7 +268,7 @@ def inpaint_tag(img: np.ndarray,  # [H, W, 3] uint8, modified in place
     """Cover one ArUco tag the way UMI's 07_generate_replay_buffer does (``inpaint_tag``): grow the quad ``scale``
     times about its centre, take the median colour of ``n_samples`` points along the grown quad's border
     (clipped to the image) and fill the grown quad with it. Returns ``img``."""
-    import cv2
+    import cv2  # lazy: start-up time (OpenCV loads in a fraction of a second; most callers only decode)
 
     c = np.asarray(corners, np.float64).reshape(4, 2)
     grown = scale * (c - c.mean(axis=0)) + c.mean(axis=0)
@@ -322,8 +291,6 @@ def read_tag_detections(path: str | os.PathLike) -> dict[int, list[np.ndarray]]:
     Raises:
         DatasetError: unreadable file or entries without ``frame_idx`` / ``tag_dict`` / ``corners``.
     """
-    import pickle
-
     p = Path(path)
     try:
         with open(p, "rb") as f:

@@ -13,6 +13,8 @@ Stage order: sits above :mod:`umi_aug.policy` and uses only public APIs of lower
 * :mod:`~umi_aug.deploy.camera` — UVC capture via OpenCV, receive timestamps, UMI's policy-image transform;
 * :mod:`~umi_aug.deploy.device_process` — the child-process wrapper shared by robot and gripper (observe-only
   until enabled; every child dies with the runner, ``PR_SET_PDEATHSIG``);
+* :mod:`~umi_aug.deploy.arm_process`, :mod:`~umi_aug.deploy.gripper_process` — the host side every arm / gripper
+  backend shares (real and simulated alike: state buffer, command queue, heartbeat; the gripper control loop);
 * :mod:`~umi_aug.deploy.sim_ur5e` — a simulated UR5e (MuJoCo), gripper and fisheye wrist camera behind the same
   interfaces (``robot=sim_ur5e``, ``backend: sim``);
 * :mod:`~umi_aug.deploy.policies` — scripted policies (reach); :mod:`~umi_aug.deploy.recorder` — zarr + mp4 +

@@ -65,7 +65,6 @@ class UVCCamera:
         self.cfg = cfg
         self.fps = float(cfg.fps)
         self._frames: collections.deque = collections.deque(maxlen=int(cfg.buffer))
-        self._raw_last: np.ndarray | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -113,7 +112,6 @@ class UVCCamera:
             img = policy_image(rgb, c.size, c.mask_gripper, c.mask_mirror)
             with self._lock:
                 self._frames.append((t_recv - c.latency, img))
-                self._raw_last = rgb
                 self.n_read += 1
             if not c.realtime:
                 continue
@@ -127,11 +125,6 @@ class UVCCamera:
         if not items:
             raise SafetyStop(f"camera: no frame ({self._error or 'not started'})")
         return {"timestamp": np.array([t for t, _ in items]), "rgb": np.stack([im for _, im in items])}
-
-    def last_raw(self) -> np.ndarray | None:
-        """The newest full-resolution RGB frame (for recording)."""
-        with self._lock:
-            return self._raw_last
 
     def stop(self) -> None:
         self._stop.set()

@@ -1,4 +1,8 @@
-"""The small interfaces the runner talks to. Real backends (ur-rtde, WSG-50, UVC) and test doubles implement them.
+"""The small interfaces the runner talks to. The real backends (ur-rtde, WSG-50, UVC), the simulated ones (MuJoCo
+UR5e, simulated gripper, rendered fisheye camera) and test doubles implement them; none subclasses another
+backend. The arms share their host side (:class:`~umi_aug.deploy.arm_process.ArmProcess`), the grippers theirs
+(:class:`~umi_aug.deploy.gripper_process.GripperProcess`). The Protocols are ``runtime_checkable``
+(``isinstance`` checks that the members exist, not their signatures).
 
 All timestamps are seconds on the runner's clock (``time.monotonic`` for real backends), already corrected for
 the device's observation latency (``receive time − obs_latency``).
@@ -6,13 +10,14 @@ the device's observation latency (``receive time − obs_latency``).
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 __all__ = ["RobotInterface", "GripperInterface", "CameraInterface"]
 
 
+@runtime_checkable
 class RobotInterface(Protocol):
     def get_states(self, n: int) -> dict[str, np.ndarray]:
         """Last ``n`` states, oldest first: ``timestamp`` [k], ``tcp_pose`` [k, 6] (base frame, m / rotvec)."""
@@ -28,6 +33,7 @@ class RobotInterface(Protocol):
         """Halt motion and release the robot (idempotent; safe on every exit path)."""
 
 
+@runtime_checkable
 class GripperInterface(Protocol):
     def get_states(self, n: int) -> dict[str, np.ndarray]:
         """Last ``n`` states, oldest first: ``timestamp`` [k], ``width`` [k] (m)."""
@@ -40,6 +46,7 @@ class GripperInterface(Protocol):
     def stop(self) -> None: ...
 
 
+@runtime_checkable
 class CameraInterface(Protocol):
     fps: float
 

@@ -3,8 +3,9 @@ loaded with ``mujoco.MjSpec``, a TCP site added ``tcp_offset`` along the flange 
 e-Series controller rate (500 Hz, one 2 ms physics step per period; a late period catches up). Each period does
 what the ur-rtde controller process does with ``servoL``: the same commands (``("waypoint", pose, t)``), the
 same :class:`~umi_aug.deploy.interpolator.PoseTrajectoryInterpolator` with the speed limits, the same state
-record (:data:`~umi_aug.deploy.ur_rtde.STATE_FIELDS`) and heartbeat watchdog. The sampled TCP pose becomes
-joint targets by damped-least-squares IK (warm-started from the last solution) ``response_latency`` later
+record (:data:`~umi_aug.deploy.arm_process.STATE_FIELDS`) and heartbeat watchdog. The sampled TCP pose becomes
+joint targets by the simulator arms' damped-least-squares IK (:class:`umi_aug.sim.ik.ArmIK`, :data:`UR5E_DLS`;
+warm-started from the last solution) ``response_latency`` later
 (the real arm's response time, which the runner's ``action_latency`` compensates), tracked by joint PD control
 with velocity feed-forward and gravity compensation within the UR5e's joint torque limits. The controller's protective stops are
 mirrored: an unreachable target (IK residual) or a joint tracking error above the limit stop the arm with one
@@ -16,7 +17,8 @@ link offsets set to the UR5e DH parameters (:func:`ur5e_fk_dh`; checked at load)
 (box, ``joints_init``, reach target) means the same physical pose in simulation and on the arm.
 
 The arm is one of the three roles of the simulated UR5e (:mod:`umi_aug.deploy.sim_ur5e`); it implements
-:class:`~umi_aug.deploy.interfaces.RobotInterface`.
+:class:`~umi_aug.deploy.interfaces.RobotInterface` through the host side it shares with the ur-rtde backend
+(:class:`~umi_aug.deploy.arm_process.ArmProcess`).
 
 Every child process dies with the runner, also on SIGKILL (:func:`~umi_aug.deploy.device_process.child_setup`:
 ``PR_SET_PDEATHSIG``, plus a parent-alive check every loop period). The arm's process asks for SIGTERM as its
@@ -40,18 +42,20 @@ import cv2
 import numpy as np
 
 from umi_aug.config_check import reject_unknown_keys, require_positive
+from umi_aug.deploy.arm_process import ArmProcess, drain_waypoint_commands
 from umi_aug.deploy.clock import Clock, MonotonicClock
 from umi_aug.deploy.device_process import child_setup, parent_alive, poll_enable
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
 from umi_aug.deploy.safety import SafetyStop, check_robot_limits
 from umi_aug.deploy.shared_state import SharedStateBuffer
-from umi_aug.deploy.ur_rtde import URRTDERobot, drain_waypoint_commands
 from umi_aug.errors import DeployError
 from umi_aug.geometry.se3 import pos_rotvec_to_pose
+from umi_aug.sim.gl import import_mujoco
+from umi_aug.sim.ik import ArmIK, DLSParams, rodrigues_log, site_pose
 
 __all__ = ["SimURConfig", "UR5eSim", "StopRamp", "SimServoLoop", "SimUR5eRobot", "ur5e_mjcf_path",
            "base_pose_matrix", "ur5e_fk_dh", "stop_time_bound", "stop_on_signal", "JOINT_NAMES", "TCP_SITE",
-           "CONTROL_RATE_HZ"]
+           "CONTROL_RATE_HZ", "UR5E_DLS"]
 
 log = logging.getLogger(__name__)
 
@@ -60,9 +64,10 @@ JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wris
 FLANGE_BODY = "right_hand"  # robosuite's UR5e: the tool flange frame, z out of the flange
 TCP_SITE = "umi_tcp"
 CONTROL_RATE_HZ = 500.0  # e-Series servoL rate
-_IK_DAMPING = 1e-2
-_IK_MAX_STEP = 0.05  # rad per iteration
-_IK_TOL_POS, _IK_TOL_ROT = 1e-6, 1e-5
+#: the servo loop's IK (:class:`~umi_aug.sim.ik.ArmIK`): λ = 1e-2, at most 0.05 rad per joint and iteration,
+#: converged below 1e-6 m / 1e-5 rad, rotation error by OpenCV's Rodrigues (fast at 500 Hz)
+UR5E_DLS = DLSParams(max_step=0.05, step_norm="max", damping=1e-2, tol_pos_m=1e-6, tol_rot_rad=1e-5,
+                     rot_log=rodrigues_log)
 _ARMATURE = 0.1  # kg·m², per joint (UR harmonic drives, ratio ~100, reflect ~0.1 kg·m²)
 _MAX_CATCH_UP = 25  # physics steps one late period may add (50 ms); more is dropped (the sim slows down)
 _REST_LIN_M_S = 1e-3  # a stop ends when the TCP moves slower than this (m/s) ...
@@ -134,12 +139,6 @@ def ur5e_mjcf_path(path: str | None = None) -> Path:
     if not p.is_file():
         raise DeployError(f"robot.model={str(p)!r}: no such MJCF file")
     return p
-
-
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation vector of a 3×3 rotation (OpenCV's Rodrigues, C; the same as :func:`umi_aug.geometry.so3.so3_log`
-    up to rounding — the 500 Hz loop calls it several times a period)."""
-    return cv2.Rodrigues(np.ascontiguousarray(R, dtype=np.float64))[0].reshape(3)
 
 
 def base_pose_matrix(base_pose: list[float]) -> np.ndarray:
@@ -234,8 +233,6 @@ class UR5eSim:
     """
 
     def __init__(self, cfg: SimURConfig) -> None:
-        from umi_aug.sim.gl import import_mujoco
-
         self._mj = mj = import_mujoco()
         path = ur5e_mjcf_path(cfg.model)
         try:
@@ -257,15 +254,12 @@ class UR5eSim:
         jids = [mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, n) for n in JOINT_NAMES]
         if min(jids) < 0:
             raise DeployError(f"robot.model={str(path)!r}: joints {JOINT_NAMES} not all found")
-        self.qadr = np.array([m.jnt_qposadr[j] for j in jids])
-        self.dadr = np.array([m.jnt_dofadr[j] for j in jids])
-        self.lo = np.array([m.jnt_range[j][0] for j in jids])
-        self.hi = np.array([m.jnt_range[j][1] for j in jids])
+        self._ik = ArmIK(m, TCP_SITE, JOINT_NAMES, owner="UR5eSim")  # its own MjData: IK leaves the state alone
+        self.qadr, self.dadr, self.lo, self.hi, self.site = (self._ik.qadr, self._ik.dadr, self._ik.lo, self._ik.hi,
+                                                             self._ik.site)
         act = {int(m.actuator_trnid[a][0]): a for a in range(m.nu)}
         self.tau_max = np.array([m.actuator_ctrlrange[act[j]][1] if j in act else 150.0 for j in jids])
-        self.site = mj.mj_name2id(m, mj.mjtObj.mjOBJ_SITE, TCP_SITE)
         self.data = mj.MjData(m)
-        self._ik = mj.MjData(m)
         self.kp = np.asarray(cfg.kp, float)
         self.kd_ratio = float(cfg.kd_ratio)
         self.dt = float(m.opt.timestep)
@@ -301,20 +295,14 @@ class UR5eSim:
     def qd(self) -> np.ndarray:
         return self.data.qvel[self.dadr].copy()
 
-    def _site_T(self, d: Any) -> np.ndarray:
-        T = np.eye(4)
-        T[:3, :3] = d.site_xmat[self.site].reshape(3, 3)
-        T[:3, 3] = d.site_xpos[self.site]
-        return T
-
     def tcp_T(self) -> np.ndarray:
         """[4, 4] TCP pose in the base frame (m), from the current kinematics."""
-        return self._site_T(self.data)
+        return site_pose(self.data, self.site)
 
     def tcp_pose(self) -> np.ndarray:
         """[6] TCP pose in the base frame (m, rotation vector)."""
         d = self.data
-        return np.concatenate([d.site_xpos[self.site], _rotvec(d.site_xmat[self.site].reshape(3, 3))])
+        return np.concatenate([d.site_xpos[self.site], rodrigues_log(d.site_xmat[self.site].reshape(3, 3))])
 
     def tcp_speed(self) -> np.ndarray:
         """[6] TCP linear (m/s) and angular (rad/s) velocity in the base frame (as ``getActualTCPSpeed``)."""
@@ -323,35 +311,17 @@ class UR5eSim:
         return np.concatenate([self._jacp @ qd, self._jacr @ qd])
 
     def fk(self, q: np.ndarray) -> np.ndarray:
-        """[4, 4] TCP pose at joints ``q`` (the IK's private data; the simulation state is not touched)."""
-        d = self._ik
-        d.qpos[self.qadr] = q
-        self._mj.mj_kinematics(self.model, d)
-        return self._site_T(d)
+        """[4, 4] TCP pose in the base frame (m) at joints ``q`` [6] rad (the IK's private data; the simulation state
+        is not touched)."""
+        return self._ik.fk(q)
 
     # ------------------------------------------------------------------ control
     def ik(self, T_goal: np.ndarray, q0: np.ndarray, iters: int = 5) -> tuple[np.ndarray, float, float]:
-        """Damped least squares from ``q0`` towards the TCP pose ``T_goal`` [4, 4]:
-        ``dq = Jᵀ (J Jᵀ + λ² I)⁻¹ e`` with ``e`` = (position error, rotation error as a world-frame rotation vector),
-        steps clipped, joints within limits. Returns ``(q, position residual m, rotation residual rad)``."""
-        mj, m, d = self._mj, self.model, self._ik
-        q = np.asarray(q0, float).copy()
-        T = self.fk(q)
-        err = np.concatenate([T_goal[:3, 3] - T[:3, 3], _rotvec(T_goal[:3, :3] @ T[:3, :3].T)])
-        for _ in range(iters):
-            if np.linalg.norm(err[:3]) < _IK_TOL_POS and np.linalg.norm(err[3:]) < _IK_TOL_ROT:
-                break
-            mj.mj_comPos(m, d)
-            mj.mj_jacSite(m, d, self._jacp, self._jacr, self.site)
-            J = np.vstack([self._jacp[:, self.dadr], self._jacr[:, self.dadr]])
-            dq = J.T @ np.linalg.solve(J @ J.T + _IK_DAMPING**2 * np.eye(6), err)
-            n = np.abs(dq).max()
-            if n > _IK_MAX_STEP:
-                dq *= _IK_MAX_STEP / n
-            q = np.clip(q + dq, self.lo, self.hi)
-            T = self.fk(q)
-            err = np.concatenate([T_goal[:3, 3] - T[:3, 3], _rotvec(T_goal[:3, :3] @ T[:3, :3].T)])
-        return q, float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:]))
+        """Damped least squares from ``q0`` [6] (rad) towards the TCP pose ``T_goal`` [4, 4] (base frame, m), at
+        most ``iters`` iterations (:meth:`~umi_aug.sim.ik.ArmIK.solve_dls` with :data:`UR5E_DLS`; joints within
+        limits). Returns ``(q, position residual m, rotation residual rad)``."""
+        q, pos_err, rot_err, _ = self._ik.solve_dls(T_goal, q0, UR5E_DLS, max_iters=iters)
+        return q, pos_err, rot_err
 
     def step(self, q_target: np.ndarray, qd_target: np.ndarray | None = None,
              qdd_target: np.ndarray | None = None) -> None:
@@ -413,7 +383,7 @@ class StopRamp:
         """[6] TCP target ``tau`` s after the start of the stop (base frame: m, rotation vector)."""
         g = self.g(tau)
         R = cv2.Rodrigues(np.ascontiguousarray(self.twist[3:] * g))[0] @ self.T0[:3, :3]
-        return np.concatenate([self.T0[:3, 3] + self.twist[:3] * g, _rotvec(R)])
+        return np.concatenate([self.T0[:3, 3] + self.twist[:3] * g, rodrigues_log(R)])
 
 
 class SimServoLoop:
@@ -431,7 +401,7 @@ class SimServoLoop:
         cfg: :class:`SimURConfig`. commands: queue of ``("enable",)`` / ``("waypoint", pose[6], t)`` /
             ``("stop",)``; before ``enable`` the arm stands at ``joints_init`` (observe-only, as the real
             controller before its control interface is opened) and a waypoint is an error.
-        state: ring buffer with :data:`~umi_aug.deploy.ur_rtde.STATE_FIELDS`. stop_event: set → leave.
+        state: ring buffer with :data:`~umi_aug.deploy.arm_process.STATE_FIELDS`. stop_event: set → leave.
         heartbeat: shared double, the runner's last heartbeat. clock: time base (``time.monotonic``).
         enabled: shared int set to 1 on ``enable``. parent_pid: the runner's pid (None: not checked).
     """
@@ -653,9 +623,10 @@ def _sim_robot_main(cfg: SimURConfig, heartbeat: Any, commands: Any, state: Shar
         errors.put(str(exc) if isinstance(exc, DeployError) else f"{type(exc).__name__}: {exc}")
 
 
-class SimUR5eRobot(URRTDERobot):
-    """:class:`~umi_aug.deploy.interfaces.RobotInterface` of the simulated UR5e: the ur-rtde backend's process
-    wrapper (state ring buffer, command queue, heartbeat thread, error reporting) around :class:`SimServoLoop`.
+class SimUR5eRobot(ArmProcess):
+    """:class:`~umi_aug.deploy.interfaces.RobotInterface` of the simulated UR5e: :class:`SimServoLoop` in a child
+    process behind the host side it shares with the ur-rtde backend (:class:`~umi_aug.deploy.arm_process.
+    ArmProcess`: state ring buffer, command queue, heartbeat thread, error reporting).
 
     :meth:`sim_stats` reads the loop's counters (periods, physics steps, steps dropped when the machine could
     not keep real time)."""
@@ -663,13 +634,11 @@ class SimUR5eRobot(URRTDERobot):
     process_main = staticmethod(_sim_robot_main)
 
     def __init__(self, cfg: SimURConfig, ctx: Any = None, capacity: int = 2048, connect_timeout_s: float = 30.0):
-        super().__init__(cfg, ctx, capacity, connect_timeout_s, what="simulated UR5e")
+        super().__init__(cfg, "simulated UR5e", ctx, capacity, connect_timeout_s)
         self._stats = self._ctx.Array("d", 3, lock=False)
         cfg._stats = self._stats  # travels to the child with the config
 
     def start(self) -> None:
-        from umi_aug.sim.gl import import_mujoco
-
         import_mujoco()  # chooses MUJOCO_GL once here; the controller process inherits it (no probe there)
         super().start()
 

@@ -1,9 +1,10 @@
 """The simulated gripper (:class:`SimGripper`): a two-finger parallel gripper, position controlled, width in
-metres, its fingers move at most ``max_speed``; driven by the WSG-50 process loop (:func:`~umi_aug.deploy.wsg50.
-run_gripper_loop`) through a simulated driver, so it is the WSG-50 interface and timing.
+metres, its fingers move at most ``max_speed``; driven by the WSG-50's control loop (:func:`~umi_aug.deploy.
+gripper_process.run_gripper_loop`) through a simulated driver, so it is the WSG-50 interface and timing.
 
 One of the three roles of the simulated UR5e (:mod:`umi_aug.deploy.sim_ur5e`); :class:`SimGripper` implements
-:class:`~umi_aug.deploy.interfaces.GripperInterface`. Its process dies with the runner
+:class:`~umi_aug.deploy.interfaces.GripperInterface` through the host side it shares with the WSG-50 backend
+(:class:`~umi_aug.deploy.gripper_process.GripperProcess`). Its process dies with the runner
 (:func:`~umi_aug.deploy.device_process.child_setup`).
 """
 
@@ -17,8 +18,8 @@ import numpy as np
 
 from umi_aug.config_check import reject_unknown_keys, require_positive
 from umi_aug.deploy.device_process import child_setup
+from umi_aug.deploy.gripper_process import GripperProcess, run_gripper_loop
 from umi_aug.deploy.shared_state import SharedStateBuffer
-from umi_aug.deploy.wsg50 import WSG50Gripper, run_gripper_loop
 from umi_aug.errors import DeployError
 
 __all__ = ["SimGripperConfig", "SimFingerDriver", "SimGripper"]
@@ -49,7 +50,7 @@ class SimGripperConfig:
 
 class SimFingerDriver:
     """A parallel two-finger gripper answering the :class:`~umi_aug.deploy.wsg50.WSG50Driver` calls the control
-    loop makes (millimetres): the jaw width moves towards the commanded position at most ``max_speed``."""
+    loop (:func:`~umi_aug.deploy.gripper_process.run_gripper_loop`) makes (millimetres): the jaw width moves towards the commanded position at most ``max_speed``."""
 
     def __init__(self, cfg: SimGripperConfig, clock: Any = time.monotonic) -> None:
         self.max_mm, self.speed_mm = 1000.0 * cfg.max_width, 1000.0 * cfg.max_speed
@@ -94,11 +95,11 @@ def _sim_gripper_main(cfg: SimGripperConfig, commands: Any, state: SharedStateBu
         errors.put(f"{type(exc).__name__}: {exc}")
 
 
-class SimGripper(WSG50Gripper):
-    """:class:`~umi_aug.deploy.interfaces.GripperInterface` of the simulated gripper (the WSG-50 process wrapper
-    and loop, a simulated driver)."""
+class SimGripper(GripperProcess):
+    """:class:`~umi_aug.deploy.interfaces.GripperInterface` of the simulated gripper (the gripper process host side
+    and the WSG-50's loop, a simulated driver)."""
 
     process_main = staticmethod(_sim_gripper_main)
 
     def __init__(self, cfg: SimGripperConfig, ctx: Any = None, connect_timeout_s: float = 10.0) -> None:
-        super().__init__(cfg, ctx, connect_timeout_s, what="simulated gripper")
+        super().__init__(cfg, "simulated gripper", ctx, connect_timeout_s)

@@ -18,9 +18,6 @@ from __future__ import annotations
 
 import importlib
 import logging
-import queue
-import threading
-import time
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -28,13 +25,14 @@ import numpy as np
 
 from umi_aug.config_check import reject_unknown_keys
 from umi_aug.deploy.clock import Clock, MonotonicClock
-from umi_aug.deploy.device_process import DeviceProcess, child_setup, parent_alive, poll_enable
+from umi_aug.deploy.arm_process import ArmProcess, drain_waypoint_commands
+from umi_aug.deploy.device_process import child_setup, parent_alive, poll_enable
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
 from umi_aug.deploy.safety import SafetyStop, check_robot_limits
 from umi_aug.deploy.shared_state import SharedStateBuffer
 from umi_aug.errors import DeployError
 
-__all__ = ["URConfig", "URServoLoop", "URRTDERobot", "SAFETY_MODES", "STATE_FIELDS"]
+__all__ = ["URConfig", "URServoLoop", "URRTDERobot", "SAFETY_MODES"]
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +43,6 @@ SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 
                 6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
                 10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
                 13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
-STATE_FIELDS = {"timestamp": 1, "tcp_pose": 6, "tcp_speed": 6, "q": 6, "qd": 6, "target_pose": 6}
 
 
 @dataclass
@@ -135,7 +132,8 @@ class URServoLoop:
 
     Args:
         cfg: robot config. commands: queue of ``("enable",)`` / ``("waypoint", pose[6], t)`` / ``("stop",)``.
-        state: ring buffer with :data:`STATE_FIELDS`. stop_event: set → leave the loop cleanly.
+        state: ring buffer with :data:`~umi_aug.deploy.arm_process.STATE_FIELDS`. stop_event: set → leave the loop
+            cleanly.
         heartbeat: shared double, last runner heartbeat time (host-side watchdog). clock: the time base.
         enabled: shared int set to 1 once servoing (None: not reported). parent_pid: the runner's pid; the loop
             stops when it is no longer the parent (None: not checked).
@@ -231,30 +229,6 @@ class URServoLoop:
             rc.waitPeriod(t_period)
 
 
-def drain_waypoint_commands(commands: Any, interp: PoseTrajectoryInterpolator, last_wp: float | None,
-                            curr_time: float, max_pos_speed: float, max_rot_speed: float
-                            ) -> tuple[PoseTrajectoryInterpolator, float | None, bool]:
-    """Apply every queued ``("waypoint", pose, t)`` command to the interpolator (UMI's ``schedule_waypoint``
-    semantics, speed-limited, from ``curr_time`` = the next servo period, s); a ``("stop",)`` command ends the loop.
-
-    Returns:
-        (interpolator, time of the last scheduled waypoint, whether a stop was received)
-    """
-    while True:
-        try:
-            cmd = commands.get_nowait()
-        except queue.Empty:
-            return interp, last_wp, False
-        if cmd[0] == "stop":
-            return interp, last_wp, True
-        if cmd[0] == "enable":  # already enabled
-            continue
-        _, wp, t_wp = cmd
-        interp = interp.schedule_waypoint(np.asarray(wp, float), float(t_wp), max_pos_speed, max_rot_speed,
-                                          curr_time=curr_time, last_waypoint_time=last_wp)
-        last_wp = float(t_wp)
-
-
 def _process_main(cfg: URConfig, heartbeat: Any, commands: Any, state: SharedStateBuffer, stop_event: Any,
                   errors: Any, enabled: Any, parent_pid: int) -> None:
     child_setup(parent_pid)
@@ -264,55 +238,14 @@ def _process_main(cfg: URConfig, heartbeat: Any, commands: Any, state: SharedSta
         errors.put(str(exc) if isinstance(exc, DeployError) else f"{type(exc).__name__}: {exc}")
 
 
-class URRTDERobot(DeviceProcess):
-    """:class:`~umi_aug.deploy.interfaces.RobotInterface` backed by :class:`URServoLoop` in a child process.
+class URRTDERobot(ArmProcess):
+    """:class:`~umi_aug.deploy.interfaces.RobotInterface` of a UR arm: :class:`URServoLoop` in a child process behind
+    the shared host side (:class:`~umi_aug.deploy.arm_process.ArmProcess`: state buffer, command queue, heartbeat).
 
     Times are ``time.monotonic`` seconds (one clock for all processes of the machine).
     """
 
-    #: the child's entry point ``main(cfg, heartbeat, commands, state, stop_event, errors, enabled, parent_pid)``
-    #: (:class:`~umi_aug.deploy.device_process.DeviceProcess`); the simulated UR5e
-    #: (:class:`umi_aug.deploy.sim_arm.SimUR5eRobot`) swaps in its own servo loop, everything else is shared
     process_main = staticmethod(_process_main)
 
-    def __init__(self, cfg: Any, ctx: Any = None, capacity: int = 2048, connect_timeout_s: float = 10.0,
-                 what: str | None = None) -> None:
-        super().__init__(what or f"robot controller {cfg.robot_ip}", STATE_FIELDS, capacity, ctx, connect_timeout_s)
-        self.cfg = cfg
-        self._heartbeat = self._ctx.Value("d", time.monotonic(), lock=False)
-        self._beating = threading.Event()
-        self._beat_thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        """Start the controller process, wait for its first state, then beat the heartbeat from a thread of
-        this process every 0.1 s (the watchdog catches a dead or frozen runner process, not a slow policy)."""
-        self._heartbeat.value = time.monotonic() + self.connect_timeout_s  # grace while connecting
-        self._start_process(self.process_main, self.cfg, self._heartbeat)
-        self._beating.clear()
-        self._beat_thread = threading.Thread(target=self._beat, name="ur_rtde_heartbeat", daemon=True)
-        self._beat_thread.start()
-
-    def _beat(self) -> None:
-        while not self._beating.wait(0.1):
-            self.heartbeat()
-
-    def stop(self) -> None:
-        self._beating.set()
-        super().stop()
-
-    def heartbeat(self) -> None:
-        self._heartbeat.value = time.monotonic()
-
-    def get_states(self, n: int) -> dict[str, np.ndarray]:
-        self.heartbeat()
-        return self.state.latest(n)
-
-    def schedule_waypoint(self, pose: np.ndarray, t: float) -> None:
-        """Queue TCP ``pose`` [6] (base frame) at ``t`` (s); refused before :meth:`enable` (observe-only)."""
-        self._require_enabled("waypoint")
-        self.heartbeat()
-        self._cmd.put(("waypoint", np.asarray(pose, float).reshape(6), float(t)))
-
-    def check_ok(self) -> None:
-        super().check_ok()
-        self.heartbeat()
+    def __init__(self, cfg: URConfig, ctx: Any = None, capacity: int = 2048, connect_timeout_s: float = 10.0) -> None:
+        super().__init__(cfg, f"robot controller {cfg.robot_ip}", ctx, capacity, connect_timeout_s)

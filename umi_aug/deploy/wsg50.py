@@ -14,27 +14,21 @@ from __future__ import annotations
 
 import enum
 import logging
-import queue
 import socket
 import struct
-import time
 from dataclasses import dataclass
 from typing import Any, Mapping
 
 from umi_aug.config_check import reject_unknown_keys
-from umi_aug.deploy.device_process import DeviceProcess, child_setup, parent_alive, poll_enable
-from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator
-from umi_aug.deploy.safety import SafetyStop
+from umi_aug.deploy.device_process import child_setup
+from umi_aug.deploy.gripper_process import GripperProcess, run_gripper_loop
 from umi_aug.deploy.shared_state import SharedStateBuffer
 from umi_aug.errors import DeployError
 
-__all__ = ["crc16", "encode_message", "decode_stream", "Status", "WSG50Driver", "WSGConfig", "WSG50Gripper",
-           "run_gripper_loop", "GRIPPER_STATE_FIELDS"]
+__all__ = ["crc16", "encode_message", "decode_stream", "Status", "WSG50Driver", "WSGConfig", "WSG50Gripper"]
 
 log = logging.getLogger(__name__)
 
-#: Record layout of the gripper state ring buffer (m, m/s, N).
-GRIPPER_STATE_FIELDS = {"timestamp": 1, "width": 1, "velocity": 1, "force": 1, "target": 1}
 PREAMBLE = b"\xaa\xaa\xaa"
 CMD_DISCONNECT, CMD_HOMING, CMD_PREPOSITION, CMD_STOP, CMD_ACK_FAULT = 0x07, 0x20, 0x21, 0x22, 0x24
 CMD_SCRIPT_MEASURE, CMD_SCRIPT_POSITION_PD = 0xB0, 0xB1
@@ -238,75 +232,6 @@ class WSGConfig:
         return c
 
 
-def run_gripper_loop(drv: Any, cfg: Any, commands: Any, state: SharedStateBuffer, stop_event: Any,
-                     enabled: Any = None, parent_pid: int | None = None) -> None:
-    """The gripper control loop (UMI's ``WSGController``) on a connected driver, every ``1/cfg.frequency`` s.
-
-    Observe-only until an ``("enable",)`` command: only ``measure`` (a read) and the state is published. Then
-    ``ack_fault``, ``homing`` when ``cfg.home_to_open``, ``enabled.value = 1`` and, every period, track the width
-    interpolator (position + feed-forward velocity, ``position_pd``), push the measured state (``timestamp =
-    receive time − obs_latency``) and drain scheduled ``("waypoint", width_m, t)`` commands. ``drv`` has the
-    :class:`WSG50Driver` methods ``ack_fault``, ``homing``, ``measure``, ``position_pd`` (millimetres); the
-    simulated gripper (:mod:`umi_aug.deploy.sim_ur5e`) passes its own. The loop ends on ``stop_event`` or a
-    ``("stop",)`` command, or with :class:`~umi_aug.deploy.safety.SafetyStop` when ``parent_pid`` is no longer
-    this process's parent."""
-    dt = 1.0 / cfg.frequency
-
-    def publish(info: dict[str, float], target: float) -> None:
-        state.put({"timestamp": time.monotonic() - cfg.obs_latency, "width": info["position"] / 1000.0,
-                   "velocity": info["velocity"] / 1000.0, "force": info["force"], "target": target})
-
-    def check_parent() -> None:
-        if not parent_alive(parent_pid):
-            raise SafetyStop(f"the runner process {parent_pid} died")
-
-    t_next = time.monotonic()
-    while True:  # observe-only
-        if stop_event.is_set():
-            return
-        check_parent()
-        cmd = poll_enable(commands)
-        if cmd == "stop":
-            return
-        if cmd == "enable":
-            break
-        info = drv.measure()
-        publish(info, info["position"] / 1000.0)
-        t_next += dt
-        time.sleep(max(0.0, t_next - time.monotonic()))
-    drv.ack_fault()
-    if cfg.home_to_open:
-        drv.homing(True)
-    info = drv.measure()
-    w0 = info["position"] / 1000.0
-    publish(info, w0)
-    interp = PoseTrajectoryInterpolator([time.monotonic()], [[w0, 0, 0, 0, 0, 0]])
-    last_wp = None
-    if enabled is not None:
-        enabled.value = 1
-    t_start, it = time.monotonic(), 0
-    while not stop_event.is_set():
-        check_parent()
-        t_now = time.monotonic()
-        w = float(interp(t_now + dt)[0])
-        v = (w - float(interp(t_now)[0])) / dt
-        publish(drv.position_pd(w * 1000.0, v * 1000.0), w)
-        while True:
-            try:
-                cmd = commands.get_nowait()
-            except queue.Empty:
-                break
-            if cmd[0] == "stop":
-                return
-            if cmd[0] != "waypoint":
-                continue
-            _, width, t_wp = cmd
-            interp = interp.schedule_waypoint([width, 0, 0, 0, 0, 0], t_wp, cfg.max_speed, 1.0, t_now, last_wp)
-            last_wp = t_wp
-        it += 1
-        time.sleep(max(0.0, t_start + it * dt - time.monotonic()))
-
-
 def _gripper_main(cfg: WSGConfig, commands: Any, state: SharedStateBuffer, stop_event: Any, errors: Any,
                   enabled: Any, parent_pid: int) -> None:
     child_setup(parent_pid)
@@ -320,23 +245,12 @@ def _gripper_main(cfg: WSGConfig, commands: Any, state: SharedStateBuffer, stop_
         drv.close(stop_fingers=bool(enabled.value))  # observe-only: no command, only the goodbye
 
 
-class WSG50Gripper(DeviceProcess):
-    """:class:`~umi_aug.deploy.interfaces.GripperInterface` for a WSG-50 (own process, ``frequency`` Hz)."""
+class WSG50Gripper(GripperProcess):
+    """:class:`~umi_aug.deploy.interfaces.GripperInterface` for a WSG-50 (own process, ``frequency`` Hz): its
+    client (:class:`WSG50Driver`) driven by :func:`~umi_aug.deploy.gripper_process.run_gripper_loop` behind the
+    shared host side (:class:`~umi_aug.deploy.gripper_process.GripperProcess`)."""
 
-    #: the child's entry point ``main(cfg, commands, state, stop_event, errors, enabled, parent_pid)`` (the
-    #: simulated gripper of
-    #: :mod:`umi_aug.deploy.sim_ur5e` swaps in its own driver; the loop is :func:`run_gripper_loop` for both)
     process_main = staticmethod(_gripper_main)
 
-    def __init__(self, cfg: Any, ctx: Any = None, connect_timeout_s: float = 10.0, what: str | None = None) -> None:
-        super().__init__(what or f"gripper WSG-50 {cfg.gripper_ip}:{cfg.gripper_port}", GRIPPER_STATE_FIELDS, 256,
-                         ctx, connect_timeout_s)
-        self.cfg = cfg
-
-    def start(self) -> None:
-        self._start_process(self.process_main, self.cfg)
-
-    def schedule_waypoint(self, width: float, t: float) -> None:
-        """Queue jaw opening ``width`` (m) at ``t`` (s); refused before :meth:`enable` (observe-only)."""
-        self._require_enabled("waypoint")
-        self._cmd.put(("waypoint", float(width), float(t)))
+    def __init__(self, cfg: WSGConfig, ctx: Any = None, connect_timeout_s: float = 10.0) -> None:
+        super().__init__(cfg, f"gripper WSG-50 {cfg.gripper_ip}:{cfg.gripper_port}", ctx, connect_timeout_s)

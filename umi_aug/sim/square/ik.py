@@ -1,4 +1,5 @@
-"""Damped-least-squares inverse kinematics of the Panda arm in MuJoCo (plain DLS; no extra IK library).
+"""Inverse kinematics of the square benchmark's Panda arm: the simulator arms' DLS solver
+(:class:`umi_aug.sim.ik.ArmIK`) with the Panda's parameters (:data:`PANDA_DLS`).
 
 Solves for the 7 arm joints that put a site (default: robosuite's grip site) at a target world pose, inside
 the joint limits, with seeded random restarts; then reports the residual and any penetrating contact of the
@@ -13,18 +14,17 @@ import numpy as np
 
 from umi_aug.errors import SimError
 from umi_aug.geometry import so3_log
-from umi_aug.sim.gl import import_mujoco
+from umi_aug.sim.ik import ArmIK, DLSParams
 
-__all__ = ["IKResult", "PandaIK", "POS_TOL_M", "ROT_TOL_RAD"]
+__all__ = ["IKResult", "PandaIK", "PANDA_DLS", "POS_TOL_M", "ROT_TOL_RAD"]
 
 #: Acceptance thresholds of a solution: 10× tighter than the required 1 mm / 0.5°, so an accepted pose is the
 #: sampled pose (a looser residual means the arm stopped at a joint limit short of the target).
 POS_TOL_M: float = 1e-4
 ROT_TOL_RAD: float = float(np.deg2rad(0.05))
-#: Convergence thresholds of the iteration.
-_CONV_POS, _CONV_ROT = 1e-6, 1e-5
-_DAMPING = 1e-2        # λ of (J Jᵀ + λ² I)
-_MAX_STEP = 0.2        # rad, largest joint change per iteration
+#: The Panda's DLS: λ = 1e-2, steps of at most 0.2 rad in 2-norm, converged below 1e-6 m / 1e-5 rad, rotation
+#: error by ``so3_log``.
+PANDA_DLS = DLSParams(max_step=0.2, step_norm="l2", damping=1e-2, tol_pos_m=1e-6, tol_rot_rad=1e-5, rot_log=so3_log)
 _MAX_ITERS = 200
 _PENETRATION_M = 1e-3  # a contact deeper than this counts as a collision
 
@@ -54,8 +54,9 @@ class IKResult:
         return self.reachable and not self.collisions
 
 
-class PandaIK:
-    """IK for ``robot0``'s 7 arm joints.
+class PandaIK(ArmIK):
+    """IK for ``robot0``'s 7 arm joints: :class:`~umi_aug.sim.ik.ArmIK` with the square's DLS parameters
+    (:data:`PANDA_DLS`), seeded restarts and the robot's contacts with the scene.
 
     Args:
         model: raw ``mujoco.MjModel`` of the square environment.
@@ -64,19 +65,9 @@ class PandaIK:
     """
 
     def __init__(self, model, site: str = "gripper0_grip_site", prefix: str = "robot0_joint") -> None:
-        mj = self._mj = import_mujoco()
-        self.model = model
-        self.site = mj.mj_name2id(model, mj.mjtObj.mjOBJ_SITE, site)
-        if self.site < 0:
-            raise SimError(f"PandaIK: no site {site!r} in the model")
-        jids = [mj.mj_name2id(model, mj.mjtObj.mjOBJ_JOINT, f"{prefix}{i}") for i in range(1, 8)]
-        if min(jids) < 0:
-            raise SimError(f"PandaIK: joints {prefix}1..7 not all found")
-        self.qadr = np.array([model.jnt_qposadr[j] for j in jids])
-        self.dadr = np.array([model.jnt_dofadr[j] for j in jids])
-        self.lo = np.array([model.jnt_range[j][0] for j in jids])
-        self.hi = np.array([model.jnt_range[j][1] for j in jids])
-        self.data = mj.MjData(model)
+        super().__init__(model, site, [f"{prefix}{i}" for i in range(1, 8)], owner="PandaIK",
+                         joints_label=f"{prefix}1..7")
+        mj = self._mj
         robot_bodies = [b for b in range(model.nbody)
                         if mj.mj_id2name(model, mj.mjtObj.mjOBJ_BODY, b).startswith(("robot0_", "gripper0_"))]
         self._robot_body = np.zeros(model.nbody, dtype=bool)
@@ -87,48 +78,7 @@ class PandaIK:
 
     def site_pose(self, q: np.ndarray, data_src) -> np.ndarray:
         """Site pose ``[4, 4]`` with arm joints ``q`` and everything else from ``data_src``."""
-        self._load(data_src, q)
-        return self._site_T()
-
-    def _load(self, data_src, q: np.ndarray) -> None:
-        d = self.data
-        d.qpos[:] = data_src.qpos
-        d.qvel[:] = 0.0
-        d.qpos[self.qadr] = q
-        self._mj.mj_kinematics(self.model, d)
-        self._mj.mj_comPos(self.model, d)
-
-    def _site_T(self) -> np.ndarray:
-        T = np.eye(4)
-        T[:3, :3] = self.data.site_xmat[self.site].reshape(3, 3)
-        T[:3, 3] = self.data.site_xpos[self.site]
-        return T
-
-    def _error(self, T_goal: np.ndarray) -> np.ndarray:
-        T = self._site_T()
-        return np.concatenate([T_goal[:3, 3] - T[:3, 3], so3_log(T_goal[:3, :3] @ T[:3, :3].T)])
-
-    def _iterate(self, data_src, T_goal: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        mj, m, d = self._mj, self.model, self.data
-        jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
-        self._load(data_src, q)
-        err = self._error(T_goal)
-        it = 0
-        for it in range(1, _MAX_ITERS + 1):
-            if np.linalg.norm(err[:3]) < _CONV_POS and np.linalg.norm(err[3:]) < _CONV_ROT:
-                break
-            mj.mj_jacSite(m, d, jacp, jacr, self.site)
-            J = np.vstack([jacp[:, self.dadr], jacr[:, self.dadr]])  # [6, 7]
-            dq = J.T @ np.linalg.solve(J @ J.T + _DAMPING**2 * np.eye(6), err)
-            n = np.linalg.norm(dq)
-            if n > _MAX_STEP:
-                dq *= _MAX_STEP / n
-            q = np.clip(q + dq, self.lo, self.hi)
-            d.qpos[self.qadr] = q
-            mj.mj_kinematics(m, d)
-            mj.mj_comPos(m, d)
-            err = self._error(T_goal)
-        return q, err, it
+        return self.fk(q, data_src.qpos)
 
     def refine(self, data_src, T_world_site: np.ndarray, q_start: np.ndarray, *, lo: np.ndarray | None = None,
                hi: np.ndarray | None = None, q_rest: np.ndarray | None = None, null_gain: float = 0.0,
@@ -136,7 +86,8 @@ class PandaIK:
         """One damped-least-squares descent from ``q_start`` (no restarts), for tracking a path.
 
         Unlike :meth:`solve`'s iteration, a joint held at a bound whose step points outward is dropped from the
-        Jacobian for that step, so the redundant 7th DoF takes over instead of the iteration stalling there.
+        Jacobian for that step, so the redundant 7th DoF takes over instead of the iteration stalling there
+        (:meth:`~umi_aug.sim.ik.ArmIK.solve_dls` with ``release_bounds``).
 
         Args:
             data_src: ``mujoco.MjData`` giving the rest of the scene (not modified).
@@ -148,58 +99,19 @@ class PandaIK:
         Returns:
             (q [7] rad, position error m, rotation error rad (geodesic), iterations)
         """
-        mj, m, d = self._mj, self.model, self.data
         lo = self.lo if lo is None else np.asarray(lo, dtype=np.float64)
         hi = self.hi if hi is None else np.asarray(hi, dtype=np.float64)
-        T_goal = np.asarray(T_world_site, dtype=np.float64)
-        jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
         q = np.clip(np.asarray(q_start, dtype=np.float64), lo, hi)
-        self._load(data_src, q)
-        err = self._error(T_goal)
-        eye6, it = np.eye(6), 0
-        for it in range(1, int(max_iters) + 1):
-            if np.linalg.norm(err[:3]) < _CONV_POS and np.linalg.norm(err[3:]) < _CONV_ROT:
-                break
-            mj.mj_jacSite(m, d, jacp, jacr, self.site)
-            J = np.vstack([jacp[:, self.dadr], jacr[:, self.dadr]])  # [6, 7]
-            free = np.ones(7, dtype=bool)
-            for _ in range(7):
-                Jf = J * free
-                J_pinv = Jf.T @ np.linalg.solve(Jf @ Jf.T + _DAMPING**2 * eye6, eye6)  # [7, 6]
-                dq = J_pinv @ err
-                if null_gain > 0.0 and q_rest is not None:
-                    dq += (np.eye(7) - J_pinv @ Jf) @ (null_gain * (np.asarray(q_rest) - q) * free)
-                out = free & (((q <= lo) & (dq < 0.0)) | ((q >= hi) & (dq > 0.0)))
-                if not out.any():
-                    break
-                free &= ~out
-            n = np.linalg.norm(dq)
-            if n > _MAX_STEP:
-                dq *= _MAX_STEP / n
-            q = np.clip(q + dq, lo, hi)
-            d.qpos[self.qadr] = q
-            mj.mj_kinematics(m, d)
-            mj.mj_comPos(m, d)
-            err = self._error(T_goal)
-        return q, float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:])), it
+        return self.solve_dls(np.asarray(T_world_site, dtype=np.float64), q, PANDA_DLS, max_iters=max_iters,
+                              qpos=data_src.qpos, lo=lo, hi=hi, release_bounds=True, q_rest=q_rest,
+                              null_gain=null_gain)
 
     def posture_step(self, data_src, q: np.ndarray, q_rest: np.ndarray, gain: float,
                      max_abs: np.ndarray) -> np.ndarray:
-        """``q`` moved by ``gain · (q_rest − q)`` projected into the null space of the site Jacobian at ``q`` (the
-        site pose stays put to first order; the arm's elbow swivels towards ``q_rest``), the step scaled down so no
-        joint moves more than ``max_abs`` [7] rad, and clipped into the joint ranges. Rows of J with singular values
-        below 1e-3 of the largest count as null space (near a singularity the pose moves; re-solve after)."""
-        mj, m, d = self._mj, self.model, self.data
-        q = np.asarray(q, dtype=np.float64)
-        self._load(data_src, q)
-        jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
-        mj.mj_jacSite(m, d, jacp, jacr, self.site)
-        J = np.vstack([jacp[:, self.dadr], jacr[:, self.dadr]])
-        dq = (np.eye(7) - np.linalg.pinv(J, rcond=1e-3) @ J) @ (gain * (np.asarray(q_rest) - q))
-        big = np.abs(dq) / np.maximum(np.asarray(max_abs, dtype=np.float64), 1e-12)
-        if big.max() > 1.0:
-            dq /= big.max()
-        return np.clip(q + dq, self.lo, self.hi)
+        """:meth:`~umi_aug.sim.ik.ArmIK.null_space_step` with the rest of the scene from ``data_src``: ``q`` [7]
+        moved towards ``q_rest`` in the null space of the site Jacobian (the grip site stays put to first order),
+        no joint more than ``max_abs`` [7] rad, inside the joint ranges."""
+        return self.null_space_step(q, q_rest, gain, max_abs, data_src.qpos)
 
     def contacts(self, data_src, q: np.ndarray, max_penetration_m: float = _PENETRATION_M,
                  self_collision: bool = True) -> list[tuple[str, str, float]]:
@@ -207,7 +119,7 @@ class PandaIK:
         with arm joints ``q``, fingers and everything else from ``data_src``: with the scene (table, pegs, nuts)
         and, when ``self_collision``, with itself or its mount. Returns ``(geom_a, geom_b, distance m)`` (< 0)."""
         mj, m, d = self._mj, self.model, self.data
-        self._load(data_src, q)
+        self.load(q, data_src.qpos)
         mj.mj_collision(m, d)
         out = []
         for c in d.contact[: d.ncon]:
@@ -227,7 +139,7 @@ class PandaIK:
     def collisions(self, data_src, q: np.ndarray) -> list[str]:
         """Robot contacts penetrating deeper than 1 mm with arm joints ``q`` (state of ``data_src`` otherwise)."""
         mj, m, d = self._mj, self.model, self.data
-        self._load(data_src, q)
+        self.load(q, data_src.qpos)
         mj.mj_forward(m, d)
         out = []
         for c in d.contact[: d.ncon]:
@@ -258,8 +170,7 @@ class PandaIK:
         best = None
         for attempt in range(restarts + 1):
             start = q0 if attempt == 0 else np.clip(q0 + gen.normal(0.0, restart_std, 7), self.lo, self.hi)
-            q, err, it = self._iterate(data_src, T_goal, start)
-            pe, re = float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:]))
+            q, pe, re, it = self.solve_dls(T_goal, start, PANDA_DLS, max_iters=_MAX_ITERS, qpos=data_src.qpos)
             res = IKResult(q=q, pos_err=pe, rot_err=re, reachable=pe < POS_TOL_M and re < ROT_TOL_RAD,
                            iters=it, attempts=attempt + 1)
             if res.reachable:
