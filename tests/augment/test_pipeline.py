@@ -268,10 +268,10 @@ def test_real_3dgs_training_stage(aug_assets, aug_session, aug_work, tmp_path, m
     import shutil
 
     from umi_aug.augment import SplatStageConfig, plan_episode, prepare_session, render_episode_frames
-    from umi_aug.augment import session_assets
+    from umi_aug.augment.sources import session as session_source
 
     prefits = []
-    monkeypatch.setattr(session_assets, "start_obstacle_prefit", lambda work, cfg, names: prefits.append(names))
+    monkeypatch.setattr(session_source, "start_obstacle_prefit", lambda work, cfg, names: prefits.append(names))
     for stage in ("reconstruct", "contact"):
         shutil.copytree(aug_work / stage, tmp_path / stage)
     cfg = small_config(mode="both", splat=SplatStageConfig(

@@ -42,11 +42,15 @@ def _source(tmp_path: Path, rng: np.random.Generator, codec: str) -> tuple[Path,
 
 
 class _NoJobSource:
-    """An export ``source`` with no augmentable demo: the export holds the originals only, written through every
-    step of :func:`umi_aug.augment.export` (working store, records, ``.zip`` copy, summary)."""
+    """An export ``source`` (:class:`umi_aug.augment.sources.InputSource`) with no augmentable demo: the export holds
+    the originals only, written through every step of :func:`umi_aug.augment.export` (working store, records,
+    ``.zip`` copy, summary)."""
 
     def __init__(self, dataset: Path) -> None:
         self.dataset = str(dataset)
+
+    def reads(self) -> tuple[Path, ...]:
+        return (Path(self.dataset),)
 
     def check(self, image_size: int) -> None:
         assert image_size == SIZE
@@ -57,7 +61,7 @@ class _NoJobSource:
     def n_augment(self, n_episodes: int) -> int:
         return 0
 
-    def prepare(self, work, cfg, progress: bool = False):
+    def prepare(self, work, cfg, *, progress: bool = False, prefit_obstacles=()):
         original = ReplayBuffer.open(self.dataset)
         demos = [SimpleNamespace(index=i, contact_index=None) for i in range(original.n_episodes)]
         return SimpleNamespace(cfg=cfg, paths={"dataset": self.dataset}, original=original, demos=demos,

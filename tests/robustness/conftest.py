@@ -108,7 +108,7 @@ def stop_before_stages(monkeypatch):
     def stop(*a, **k):
         raise Reached()
 
-    monkeypatch.setattr(ex, "prepare_session", stop)
+    monkeypatch.setattr(importlib.import_module("umi_aug.augment.sources.session"), "prepare_session", stop)
     return ex
 
 

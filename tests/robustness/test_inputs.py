@@ -32,7 +32,7 @@ def _raw_zip_dataset(path: Path, widths: np.ndarray) -> Path:
 
 def test_a_same_size_edit_of_the_dataset_changes_the_key_and_reruns_the_stage(session, tmp_path):
     from umi_aug.augment.cache import run_stage
-    from umi_aug.augment.session_assets import session_fingerprint
+    from umi_aug.augment.sources.session import session_fingerprint
 
     ds = session / "dataset.zarr.zip"
     w = np.linspace(0.0, 0.08, N_DEMO)
@@ -75,7 +75,7 @@ def test_a_same_size_edit_of_a_plain_dataset_input_changes_its_fingerprint(tmp_p
 
 
 def test_an_edited_intrinsics_file_changes_the_key(session):
-    from umi_aug.augment.session_assets import session_fingerprint
+    from umi_aug.augment.sources.session import session_fingerprint
 
     fp1 = session_fingerprint(session)
     p = next((session / "calibration").glob("*.json"))

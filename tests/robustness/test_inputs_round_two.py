@@ -662,6 +662,7 @@ def _light_stages(monkeypatch, session: Path, disk: _Disk, fill_on_job: int):
     import types
 
     import umi_aug.augment.exporter as ex
+    import umi_aug.augment.sources.session as session_source
     from umi_aug.data import ReplayBuffer
 
     ds = session / "dataset.zarr.zip"
@@ -682,16 +683,16 @@ def _light_stages(monkeypatch, session: Path, disk: _Disk, fill_on_job: int):
                                         n_frames=len(ep["camera0_rgb"]), obstacle=None)
         return ex._JobResult(j, planned, 1, [], ep["camera0_rgb"].copy(), False, 0.0, 0.0)
 
-    real_append = ex._append_episode
+    real_append = ex.append_episode
 
     def append(buf, *a, **k):
         if not disk.filled and int(buf.meta["aug_job"][-1]) == fill_on_job:  # its record is in: its data is next
             disk.fill(room=3)
         return real_append(buf, *a, **k)
 
-    monkeypatch.setattr(ex, "prepare_session", prepare_session)
+    monkeypatch.setattr(session_source, "prepare_session", prepare_session)
     monkeypatch.setattr(ex, "_job_task", job_task)
-    monkeypatch.setattr(ex, "_append_episode", append)
+    monkeypatch.setattr(ex, "append_episode", append)
     return src
 
 
@@ -750,13 +751,13 @@ def test_disk_full_names_the_path_and_validate_says_the_export_is_interrupted(se
 def test_disk_full_in_the_stage_cache_names_the_work_dir(session, tmp_path, capsys, monkeypatch):
     import errno
 
-    import umi_aug.augment.exporter as ex
+    import umi_aug.augment.sources.session as session_source
     from tests.robustness.conftest import S
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(ex, "prepare_session", full)
+    monkeypatch.setattr(session_source, "prepare_session", full)
     out = tmp_path / "out.zarr"
     rc, err, _ = _cli(capsys, "augment", str(session), "--out", str(out), "--image-size", str(S))
     assert rc == 2 and len(err) == 1

@@ -171,7 +171,7 @@ def test_zip_output_checks_free_space_before_any_work(session, tmp_path, stop_be
 
 # ------------------------------------------------------------------------------------------- 5: kills
 def test_kill_during_final_cleanup_does_not_block_the_rerun(session, tmp_path, stop_before_stages):
-    from umi_aug.augment.session_assets import session_fingerprint
+    from umi_aug.augment.sources.session import session_fingerprint
 
     cfg = small_cfg()
     key = stop_before_stages._run_key(cfg, session_fingerprint(session))

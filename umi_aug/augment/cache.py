@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from umi_aug.augment.config import _jsonable, config_hash
+from umi_aug.augment.config import config_hash, jsonable
 from umi_aug.errors import AugmentError
 from umi_aug.io_utils import atomic_write_text
 
@@ -140,7 +140,7 @@ def run_stage(name: str, work_dir: Path, config: Any, inputs: dict[str, str],
     # "settings": the config subset itself (not part of the key), so a later reader can reuse a cached stage's
     # settings (e.g. umi_aug.umi_compat takes the 3DGS iterations / budget of a prepared session from here)
     manifest = {"stage": name, "version": version, "key": key, "inputs": inputs, "config": config_hash(config),
-                "settings": _jsonable(config),
+                "settings": jsonable(config),
                 "outputs": outputs, "files": list(files), "info": info, "seconds": round(seconds, 3),
                 "finished_unix": time.time()}
     atomic_write_text(stage_dir / MANIFEST, json.dumps(manifest, indent=2, default=str) + "\n")

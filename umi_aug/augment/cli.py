@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 __all__ = ["add_augment_parser", "cmd_augment", "config_from_args", "dataset_input_from_args", "check_args",
-           "input_kind"]
+           "source_settings_from_args"]
 
 #: 3DGS defaults for a plain dataset (one episode's ~100 pre-contact 224² frames, not a scan): on UMI's real
 #: "cup in the wild" episode 600 steps reach 25.7 dB held-out (benchmarks/real_umi.py); 4000 would take ~1 h.
@@ -17,6 +17,7 @@ DATASET_SPLAT_MAX_GAUSSIANS = 30_000
 DEFAULT_TCP_OFFSET_M = 0.205
 TCP_OFFSET_RANGE_M = (0.02, 0.5)
 #: flags of the "plain dataset / square demo folder input" group → the input kinds they apply to
+#: (:func:`umi_aug.augment.sources.source_kind`)
 INPUT_FLAGS = {"--episodes": ("dataset", "square"), "--scene-group": ("dataset",), "--scene-map": ("dataset",),
                "--tcp-offset": ("dataset",), "--no-embodiment": ("square",)}
 
@@ -77,11 +78,10 @@ def config_from_args(args: argparse.Namespace):
     import dataclasses
 
     from umi_aug.augment.config import AugmentConfig, ObstacleConfig, OverlayConfig, SplatStageConfig
-
-    from umi_aug.augment.dataset_source import is_dataset_path
+    from umi_aug.augment.sources import source_kind
 
     base = AugmentConfig()
-    dataset = is_dataset_path(args.session)
+    dataset = source_kind(args.session) == "dataset"
     iterations = args.splat_iterations
     if iterations is None:
         iterations = DATASET_SPLAT_ITERATIONS if dataset else base.splat.iterations
@@ -111,20 +111,13 @@ def _effort_arg(value: str | int | None) -> int | None:
         raise AugmentError(f"--jpegxl-effort {value!r}: expected an int in 1..9 or 'default'") from None
 
 
-def input_kind(path: str) -> str:
-    """``"dataset"`` (a plain UMI replay buffer), ``"square"`` (a square demo folder) or ``"session"``."""
-    from umi_aug.augment.dataset_source import is_dataset_path
-    from umi_aug.augment.square_source import is_square_demos
-
-    return "dataset" if is_dataset_path(path) else "square" if is_square_demos(path) else "session"
-
-
 def check_args(args: argparse.Namespace) -> None:
     """Every flag checked before any work: ranges (named as typed), and the input-specific flags refused on an
     input they do not apply to (they were silently ignored). Raises :class:`AugmentError` (one line)."""
+    from umi_aug.augment.sources import source_kind
     from umi_aug.errors import AugmentError
 
-    kind = input_kind(args.session)
+    kind = source_kind(args.session)
     given = {"--episodes": args.episodes is not None, "--scene-group": args.scene_group is not None,
              "--scene-map": args.scene_map is not None, "--tcp-offset": args.tcp_offset is not None,
              "--no-embodiment": bool(args.no_embodiment)}
@@ -177,26 +170,34 @@ def dataset_input_from_args(args: argparse.Namespace):
                         scene_map=load_scene_map(args.scene_map) if getattr(args, "scene_map", None) else None)
 
 
+def source_settings_from_args(kind: str, args: argparse.Namespace):
+    """The input settings of a ``kind`` input (:func:`umi_aug.augment.sources.source_kind`) from its flags: a plain
+    dataset's :class:`~umi_aug.augment.dataset_source.DatasetInput`, a square folder's
+    :class:`~umi_aug.augment.square_source.SquareInput`, None for a session (it has none)."""
+    from umi_aug.augment.dataset_source import parse_episodes
+    from umi_aug.augment.square_source import SquareInput
+
+    if kind == "dataset":
+        return dataset_input_from_args(args)
+    if kind == "square":
+        return SquareInput(episodes=parse_episodes(args.episodes), embodiment=not args.no_embodiment)
+    return None
+
+
 def cmd_augment(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from umi_aug.augment.exporter import export, summary_table
-
-    from umi_aug.augment.dataset_source import parse_episodes
-    from umi_aug.augment.square_source import SquareInput, SquareSource, is_square_demos
+    from umi_aug.augment.sources import open_source, source_kind
 
     check_args(args)  # before any work: a bad flag costs nothing
     cfg = config_from_args(args)
-    source = None
-    if is_square_demos(args.session):
-        source = SquareSource(args.session, SquareInput(episodes=parse_episodes(args.episodes),
-                                                        embodiment=not args.no_embodiment))
+    source = open_source(args.session, source_settings_from_args(source_kind(args.session), args))
     argv = getattr(args, "argv", None)  # the command as typed, without --restart: the one that resumes this export
     command = (["umi-aug", *[a for a in argv if not (a.startswith("--re") and "--restart".startswith(a))]]
                if argv else None)  # argparse takes any unique prefix (--re, --rest, ...) for --restart
     s = export(args.session, args.out, cfg, resume=not args.restart, work_dir=args.work,
-               pictures=not args.no_pictures, dataset_input=None if source else dataset_input_from_args(args),
-               source=source, command=command)
+               pictures=not args.no_pictures, source=source, command=command)
     console = Console()
     console.print(summary_table(s))
     for k, v in s.pictures.items():

@@ -19,7 +19,7 @@ from umi_aug.recon.sfm import SfmConfig
 from umi_aug.traj.config import TrajConfig
 
 __all__ = ["MODES", "SplatStageConfig", "ObstacleConfig", "OverlayConfig", "AugmentConfig", "config_hash",
-           "modes_of"]
+           "jsonable", "modes_of"]
 
 #: Augmentation modes of one episode (``both`` in :class:`AugmentConfig` runs each of them).
 MODES: tuple[str, ...] = ("freespace", "obstacle")
@@ -187,13 +187,15 @@ def modes_of(mode: str) -> tuple[str, ...]:
     return MODES if mode == "both" else (mode,)
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
+    """``obj`` as plain JSON values (what :func:`config_hash` hashes): a dataclass → a dict of its fields, a dict →
+    sorted by key, a tuple → a list, a non-finite float → its repr, anything else unknown → its repr."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {f.name: jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+        return {str(k): jsonable(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, float) and not math.isfinite(obj):
         return repr(obj)
     if obj is None or isinstance(obj, (bool, int, float, str)):
@@ -203,5 +205,5 @@ def _jsonable(obj: Any) -> Any:
 
 def config_hash(*parts: Any) -> str:
     """sha256 (hex, 16 chars) of the canonical JSON of ``parts`` (dataclasses, dicts, lists, scalars)."""
-    text = json.dumps(_jsonable(list(parts)), sort_keys=True, separators=(",", ":"))
+    text = json.dumps(jsonable(list(parts)), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]

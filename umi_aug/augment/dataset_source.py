@@ -13,12 +13,15 @@ TCP poses in the table-tag frame, gripper widths and ``meta/episode_ends``: no s
    (:func:`umi_aug.recon.sfm.run_sfm`, gripper/mirror pixels masked) → cleaned cloud → SDF over the reachable
    region → contact per episode (proximity + grasp onset, :func:`umi_aug.recon.contact.detect_contact`; an
    episode whose sparse cloud never comes within the threshold falls back to the grasp onset from the widths);
-2. ``contact`` — the splice frame (shared with the session path);
+2. ``contact`` — the splice frame (:func:`umi_aug.augment.stages.contact_stage`, as every source);
 3. ``splat`` — fisheye 3DGS on the group's own pre-splice frames (every ``view_stride``-th; every
    ``holdout_every``-th view held out), loss masked by UMI's gripper/mirror/finger polygons, initialised from
    the triangulated cloud, topped up with random points, plus an optional far-background shell
    (:func:`background_shell_points`);
-4. ``gripper_mask`` — the overlay mask (shared with the session path).
+4. ``gripper_mask`` — the overlay mask (:func:`umi_aug.augment.stages.gripper_mask_stage`, as every source).
+
+:class:`umi_aug.augment.sources.dataset.DatasetSource` is this input's
+:class:`~umi_aug.augment.sources.base.InputSource` (what ``umi-aug augment DATASET`` runs).
 
 :func:`check_dataset` rejects a bad dataset (missing keys, wrong image size, NaN poses, lost-tracking jumps)
 with ONE error naming the key and episode before anything is computed.
@@ -41,14 +44,8 @@ from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig
 from umi_aug.augment.obstacle_stage import check_obstacle_assets
 from umi_aug.augment.preflight import MAX_STEP_DEG, MAX_STEP_M
-from umi_aug.augment.session_assets import (
-    _PROCESS_CACHE,
-    OBSTACLE_WORK_KEY,
-    DemoInfo,
-    SessionAssets,
-    _stage_contact,
-    _stage_gripper_mask,
-)
+from umi_aug.augment.session_assets import OBSTACLE_WORK_KEY, DemoInfo, SessionAssets, drop_process_cache
+from umi_aug.augment.stages import contact_stage, gripper_mask_stage, init_only_gaussians
 from umi_aug.errors import AugmentError, UmiAugError
 
 __all__ = ["DatasetInput", "DatasetAssets", "DatasetCheck", "is_dataset_path", "check_dataset",
@@ -358,8 +355,8 @@ class DatasetAssets(SessionAssets):
             _LOADED.remove(cid)
         _LOADED.append(cid)
         while len(_LOADED) > _MAX_LOADED_GROUPS:  # never all scenes in memory
-            _PROCESS_CACHE.pop(_LOADED.pop(0), None)
-        sa._lazy = _PROCESS_CACHE.setdefault(cid, {})
+            drop_process_cache(_LOADED.pop(0))
+        sa.use_process_cache(cid)
         return sa
 
     def umi_episode(self, episode, demo_index: int | None = None) -> dict[str, np.ndarray]:
@@ -387,7 +384,7 @@ def _read_frames(dataset: Path, episode: int, idx: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class _Demo:  # what _stage_contact reads
+class _Demo:  # what the group's stages read of an episode (stages.contact_stage among them)
     name: str
     T_world_cam: np.ndarray
     gripper_width: np.ndarray
@@ -553,9 +550,7 @@ def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, _Demo], sc
             raise AugmentError(f"{dataset}: episodes {sorted(demos)}: no splice frame (see {contact.dir}); nothing "
                                f"to train the scene on")
         if sc.iterations == 0:
-            from umi_aug.augment.session_assets import _init_only_gaussians
-
-            write_ply(out / "scene.ply", _init_only_gaussians(scene.path("cloud"), sc.sh_degree))
+            write_ply(out / "scene.ply", init_only_gaussians(scene.path("cloud"), sc.sh_degree))
             return {"ply": "scene.ply"}, ["scene.ply"], {"trained": False}
         views, intr = dataset_views(dataset, demos, splice, cfg.image_size, inp.view_stride)
         tcfg = SplatTrainConfig(iterations=sc.iterations, max_gaussians=sc.max_gaussians, sh_degree=sc.sh_degree,
@@ -598,8 +593,8 @@ def _build_group(dataset: Path, work: Path, fp: str, g: str, gd: dict[int, _Demo
         try:
             scene = _stage_scene(gw, dataset, fp, eps, gd, fps, cfg, inp)
             sdf_st = _stage_sdf(gw, dataset, scene, eps, gd, fps, cfg)
-            contact = _stage_contact(gw, sdf_st, _Sess([gd[e] for e in eps]), dict(cfg.recon.contact_overrides),
-                                     cfg.pregrasp_clearance_m)
+            contact = contact_stage(gw, sdf_st, [gd[e] for e in eps], dict(cfg.recon.contact_overrides),
+                                    cfg.pregrasp_clearance_m)
             rows = json.loads(contact.path("contacts").read_text())
             contact_idx = {e: r["splice_index"] for e, r in zip(eps, rows)}
             paths = {"sdf": str(sdf_st.path("sdf")), "cloud": str(scene.path("cloud")), "dataset": str(dataset)}
@@ -609,7 +604,7 @@ def _build_group(dataset: Path, work: Path, fp: str, g: str, gd: dict[int, _Demo
                 splat = _stage_splat(gw, dataset, fp, gd, scene, contact, cfg, inp, progress)
                 infos = [DemoInfo(e, gd[e].name, gd[e].T_world_cam, np.zeros(0), gd[e].gripper_width,
                                   contact_idx[e]) for e in eps]
-                gm = _stage_gripper_mask(gw, cfg, fp, dataset, infos, contact)
+                gm = gripper_mask_stage(gw, cfg, fp, dataset, infos, contact)
                 paths["splat"] = str(splat.path("ply"))
                 mask, mask_info = np.load(gm.path("mask")), gm.info
                 stages[f"{g}/splat"], stages[f"{g}/gripper_mask"] = splat, gm
@@ -679,11 +674,6 @@ def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg
             assets.render_views, assets.gripper_mask = assets.group_views[first], assets.group_masks[first]
             assets.paths = {"dataset": str(dataset), **assets.group_paths[first]}
     return assets
-
-
-@dataclass
-class _Sess:
-    demos: list[_Demo]
 
 
 def describe(assets: DatasetAssets) -> dict[str, Any]:

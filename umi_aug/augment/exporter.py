@@ -38,13 +38,15 @@ from umi_aug.augment.executor import map_ordered, usable_cores
 from umi_aug.augment.plan import (MODE_CODES, PlannedEpisode, episode_seed, first_attempt_obstacle_assets,
                                   try_plan_episode)
 from umi_aug.augment.render import render_episode_frames
-from umi_aug.augment.session_assets import OVERLAY_MASK_RULE, SessionAssets, prepare_session, session_fingerprint
+from umi_aug.augment.session_assets import SessionAssets
+from umi_aug.augment.sources import InputSource, open_source
+from umi_aug.augment.stages import OVERLAY_MASK_RULE
 from umi_aug.errors import AugmentError, UmiAugError
 from umi_aug.io_utils import (PathLock, atomic_path, atomic_write_text, check_free_space, is_inside,
                                remove_tree_atomically, tree_size)
 
-__all__ = ["ExportSummary", "ExportProgress", "FAST_PATHS", "export", "export_jobs", "export_progress",
-           "interrupted_export_message", "RECORD_KEYS", "read_episode_records", "summary_table"]
+__all__ = ["ExportSummary", "ExportProgress", "FAST_PATHS", "append_episode", "export", "export_jobs",
+           "export_progress", "interrupted_export_message", "RECORD_KEYS", "read_episode_records", "summary_table"]
 
 log = logging.getLogger(__name__)
 
@@ -336,7 +338,7 @@ class _JobResult:
     copy_tail: bool
     plan_s: float
     render_s: float
-    scene_s: float = 0.0  # a plain dataset's scene group built (or read from its cache) for this job
+    scene_s: float = 0.0  # the demo's scene built (or read from its cache) for this job by a lazy source
 
 
 def _job_task(args) -> _JobResult:
@@ -345,7 +347,7 @@ def _job_task(args) -> _JobResult:
     assets, j, job, key, raw_ok, overlay_cache, obstacle_tiles = args
     d, m, a = job
     t_scene = time.perf_counter()
-    assets = assets.for_demo(d)  # a plain dataset: the demo's scene group (built here on first use)
+    assets = assets.for_demo(d)  # the demo's scene (a source may build it here, on first use)
     scene_s = time.perf_counter() - t_scene
     if assets.demos[d].contact_index is None:  # known only once a lazily built group has run its contact stage
         return _JobResult(j, None, 0, [f"scene: {assets.demos[d].name} has no splice frame (no contact frame, or "
@@ -418,8 +420,8 @@ def _decoder_config(codec) -> dict:
     return cfg
 
 
-def _append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_arr, src_rows: np.ndarray,
-                    encoded: list | None = None) -> float:
+def append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_arr, src_rows: np.ndarray,
+                   encoded: list | None = None) -> float:
     """Append one episode like :meth:`ReplayBuffer.add_episode` (data first, ``meta/episode_ends`` LAST): the
     ``new_frames`` [n, S, S, 3] are encoded, the tail frames are the source array's rows ``src_rows`` copied as
     stored (compressed chunks, no decode/re-encode; a chunk missing in the source is the fill value there and is
@@ -468,12 +470,16 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
            resume: bool = True, work_dir: str | os.PathLike | None = None, progress: bool = True,
            pictures: bool = True, dataset_input=None, fast_paths=None, encode_threads: int | None = None,
            source=None, command: list[str] | None = None) -> ExportSummary:
-    """Write the original and the augmented episodes of a session to a UMI zarr (``.zarr.zip`` or directory).
+    """Write the original and the augmented episodes of an input to a UMI zarr (``.zarr.zip`` or directory).
 
     Args:
-        session_dir: UMI session folder, or a plain UMI dataset (``*.zarr.zip`` / zarr directory; scenes built
-            from its own frames, :mod:`umi_aug.augment.dataset_source`).
-        dataset_input: :class:`~umi_aug.augment.dataset_source.DatasetInput` of a plain dataset (default one).
+        session_dir: the input: a UMI session folder, a plain UMI dataset (``*.zarr.zip`` / zarr directory; scenes
+            built from its own frames), a square demo folder, or any kind registered with
+            :func:`umi_aug.augment.sources.register_source` (:func:`~umi_aug.augment.sources.open_source` picks
+            its :class:`~umi_aug.augment.sources.InputSource`).
+        dataset_input: the input settings :func:`~umi_aug.augment.sources.open_source` passes on: a plain
+            dataset's :class:`~umi_aug.augment.dataset_source.DatasetInput`, a square folder's
+            :class:`~umi_aug.augment.square_source.SquareInput` (None: the defaults; a session has none).
         out_path: ``*.zip`` → a ``.zarr.zip`` written at the end (working directory ``<out>.partial``); anything
             else → a zarr directory written in place.
         cfg: :class:`AugmentConfig`.
@@ -488,9 +494,9 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
             the usable cores) while the next episode renders; ``"obstacle_tiles"`` — on the replayed frames of
             an obstacle episode the scene's depth (for the obstacle's depth test) is rasterised only in the
             tiles where the obstacle shows.
-        source: another kind of input that knows its own checks and stages (``check(image_size)``,
-            ``fingerprint()``, ``dataset``, ``n_augment(n_episodes)``, ``prepare(work, cfg, progress)``), e.g.
-            :class:`umi_aug.augment.square_source.SquareSource` for ``session_dir`` = a square demo folder.
+        source: the :class:`~umi_aug.augment.sources.InputSource` of ``session_dir``, opened by the caller
+            (e.g. :class:`umi_aug.augment.square_source.SquareSource` with its settings); default:
+            ``open_source(session_dir, dataset_input)``.
         command: the command line that runs this export (``["umi-aug", "augment", ...]``, without ``--restart``),
             kept in the export's records with the working folder: ``umi-aug validate`` names it as the command that
             resumes an interrupted export.
@@ -505,15 +511,16 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
     """
     out = Path(out_path)
     work = Path(work_dir) if work_dir is not None else out.with_name(out.name + ".work")
-    _check_paths(Path(session_dir), out, work)
+    src = source if source is not None else open_source(session_dir, dataset_input)
+    _check_paths(Path(session_dir), src.reads(), out, work)
     # one run per output and per work dir: a second run fails at once naming the holder's PID
     work_existed = work.exists()
     writing = {"path": work, "what": "the stage cache (--work)"}  # what a full disk interrupts (updated by _export)
     try:
         with PathLock(out, "output", AugmentError), PathLock(work, "work dir", AugmentError, inside=True):
-            return _export(session_dir, out, work, cfg, resume=resume, progress=progress, pictures=pictures,
-                           dataset_input=dataset_input, fast=_fast_paths(fast_paths), encode_threads=encode_threads,
-                           source=source, command=command, writing=writing)
+            return _export(src, out, work, cfg, resume=resume, progress=progress, pictures=pictures,
+                           fast=_fast_paths(fast_paths), encode_threads=encode_threads, command=command,
+                           writing=writing)
     except OSError as exc:
         if exc.errno not in DISK_FULL_ERRNOS:
             raise
@@ -563,12 +570,12 @@ def _fast_paths(fast_paths) -> frozenset:
     return fast
 
 
-def _check_paths(src: Path, out: Path, work: Path) -> None:
-    """Refuse an output / work dir that is, contains or lies inside the input (nothing is touched)."""
+def _check_paths(src: Path, reads: tuple[Path, ...], out: Path, work: Path) -> None:
+    """Refuse an output / work dir that is, contains or lies inside the input ``src`` — inside a folder input, in
+    what the source ``reads`` (:meth:`InputSource.reads`: a session's inputs, all of a zarr directory) — nothing
+    is touched."""
     for what, p in (("--out", out), ("--out", _working_path(out)), ("--work", work)):
-        if is_inside(src, p) or (src.is_dir() and is_inside(p, src) and (
-                not (src / "demos").is_dir()  # a zarr directory dataset: nothing may be written inside it
-                or any(is_inside(p, src / sub) for sub in ("demos", "calibration", "dataset.zarr.zip")))):
+        if is_inside(src, p) or (src.is_dir() and is_inside(p, src) and any(is_inside(p, r) for r in reads)):
             raise AugmentError(f"{what} {p}: is, contains or lies inside the input {src}; umi-aug never writes "
                                f"into or deletes its inputs: choose another {what}")
 
@@ -625,36 +632,17 @@ def _expected_bytes(src: Path, n_jobs_max: int, n_src_eps: int, include_original
     return int(per_ep * (n_jobs_max + (n_src_eps if include_original else 0)))
 
 
-def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: bool, progress: bool,
-            pictures: bool, dataset_input, fast: frozenset = frozenset(), encode_threads: int | None = None,
-            source=None, command: list[str] | None = None, writing: dict | None = None) -> ExportSummary:
+def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resume: bool, progress: bool,
+            pictures: bool, fast: frozenset = frozenset(), encode_threads: int | None = None,
+            command: list[str] | None = None, writing: dict | None = None) -> ExportSummary:
     from tqdm import tqdm
 
     t_start = time.perf_counter()
-    from umi_aug.augment import dataset_source as dsrc
-    from umi_aug.augment.preflight import check_session_inputs
-
-    is_dataset = source is None and dsrc.is_dataset_path(session_dir)
-    if source is not None:  # checked before anything is removed or computed
-        source.check(cfg.image_size)
-        key = _run_key(cfg, source.fingerprint())
-        src_ds = Path(source.dataset)
-        n_src = _n_episodes(src_ds)
-        n_aug = source.n_augment(n_src)
-    elif is_dataset:  # checked before anything is removed or computed: one error naming the key/episode
-        dataset_input = dataset_input or dsrc.DatasetInput()
-        dsrc.check_dataset(session_dir, cfg.image_size, dataset_input)
-        key = _run_key(cfg, config_hash(dsrc.dataset_fingerprint(session_dir), dataset_input))
-        src_ds = Path(session_dir)
-        n_src = _n_episodes(src_ds)
-        n_aug = len(dataset_input.episodes) if dataset_input.episodes is not None else n_src
-    elif not Path(session_dir, "demos").is_dir():
-        raise AugmentError(f"{session_dir}: neither a UMI session folder (no demos/) nor a UMI dataset "
-                           f"(*.zarr.zip or a zarr directory with data/ and meta/)")
-    else:
-        n_src = n_aug = check_session_inputs(session_dir, cfg.image_size).n_episodes  # all inputs, before compute
-        src_ds = Path(session_dir) / "dataset.zarr.zip"
-        key = _run_key(cfg, session_fingerprint(Path(session_dir)))
+    src.check(cfg.image_size)  # every input, before anything is removed or computed: one error naming the key
+    key = _run_key(cfg, src.fingerprint())
+    src_ds = Path(src.dataset)
+    n_src = _n_episodes(src_ds)
+    n_aug = src.n_augment(n_src)
     wpath = _working_path(out)
     _remove_leftover_temporaries(out)
     if not resume:
@@ -676,14 +664,9 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
         check_free_space(out, need, f"writing {out.name} (about {n_aug * len(cfg.modes) * cfg.n_per_demo} new "
                          f"episodes{' + a .zarr.zip copy of the working store' if out.name.endswith('.zip') else ''})",
                          AugmentError)
-    if source is not None:
-        assets = source.prepare(work, cfg, progress=progress)
-    elif is_dataset:
-        # scenes built per group when its first episode is generated (cached on disk), never all up front
-        assets = dsrc.prepare_dataset(session_dir, work, cfg, dataset_input, progress=progress, lazy=True)
-    else:  # the obstacle assets the jobs' first attempts draw are fitted beside the 3DGS training
-        assets = prepare_session(session_dir, work, cfg, progress=progress,
-                                 prefit_obstacles=() if finished else first_attempt_obstacle_assets(cfg, range(n_src)))
+    # the obstacle assets the jobs' first attempts draw: a source may fit them beside a long stage
+    assets = src.prepare(work, cfg, progress=progress,
+                         prefit_obstacles=() if finished else first_attempt_obstacle_assets(cfg, range(n_src)))
     jobs = export_jobs(assets)
     if finished:
         log.info("export: %s is complete for this configuration; nothing to do", out)
@@ -746,8 +729,8 @@ def _export(session_dir, out: Path, work: Path, cfg: AugmentConfig, *, resume: b
                 if res.copy_tail:  # replayed frames: the original compressed chunks
                     r0 = assets.original.get_episode_slice(d).start + int(ep.source_contact_index)
                     rows = np.arange(r0, r0 + planned.n_frames - planned.splice_index)
-                timings["encode_s"] += _append_episode(buf, assets.umi_episode(ep, d), res.frames, src_img, rows,
-                                                       encoded)
+                timings["encode_s"] += append_episode(buf, assets.umi_episode(ep, d), res.frames, src_img, rows,
+                                                      encoded)
                 timings["write_s"] += time.perf_counter() - t0
             tally = dict(attrs.get("attempt_failures", {}))
             for r in res.reasons:

@@ -14,7 +14,11 @@ instead of a reconstruction, each step a cached stage (:mod:`umi_aug.augment.cac
 2. ``square_scene`` — the scene model (:mod:`umi_aug.augment.square_scene`): ONE static-scene fisheye 3DGS from a
    simulated wrist-camera scan plus ONE nut asset, composited at each demo's nut pose (square scenes differ only
    in the nut's pose).
-3. ``gripper_mask`` — the overlay mask (the Panda fingers' static pixels in the demos' pre-contact frames).
+3. ``gripper_mask`` — the overlay mask (the Panda fingers' static pixels in the demos' pre-contact frames;
+   :func:`umi_aug.augment.stages.gripper_mask_stage`, as every source).
+
+:class:`SquareSource` is this input's :class:`~umi_aug.augment.sources.base.InputSource` (registered by
+:mod:`umi_aug.augment.sources.square`).
 
 Embodiment: every planned trajectory is checked on the simulated Panda (IK along the path, joint limits and
 speeds, no collision before the splice: :func:`umi_aug.sim.square.feasibility.check_panda_path`); an infeasible
@@ -34,7 +38,8 @@ import numpy as np
 
 from umi_aug.augment.cache import StageResult, run_stage
 from umi_aug.augment.config import AugmentConfig, config_hash
-from umi_aug.augment.session_assets import _PROCESS_CACHE, DemoInfo, SessionAssets, _stage_gripper_mask
+from umi_aug.augment.session_assets import DemoInfo, SessionAssets
+from umi_aug.augment.stages import gripper_mask_stage
 from umi_aug.errors import AugmentError, UmiAugError
 from umi_aug.sim.square.scan import ROBOT_BODY_PREFIXES
 
@@ -394,7 +399,7 @@ class SquareAssets(SessionAssets):
                               sdf_path=str(sd / row["sdf"]) if row["sdf"] else "",
                               T_world_nut=np.asarray(row["T_world_nut"]),
                               state_ref=np.load(sd / f"state_ref_{int(demo_index):05d}.npy"), square=self.square)
-        h._lazy = _PROCESS_CACHE.setdefault(config_hash(h.cache_id, int(demo_index)), {})
+        h.use_process_cache(config_hash(h.cache_id, int(demo_index)))
         return h
 
     def umi_episode(self, episode, demo_index: int | None = None) -> dict[str, np.ndarray]:
@@ -485,8 +490,8 @@ def prepare_square(demos_dir: str | os.PathLike, work_dir: str | os.PathLike, cf
         demos.append(DemoInfo(e, f"demo_{e}", Tc, np.arange(b - a) / SQUARE_FPS, np.asarray(width[a:b]).reshape(-1),
                               s))
     try:
-        stages["gripper_mask"] = gm = _stage_gripper_mask(work, cfg, fp, files.zarr,
-                                                          [demos[e] for e in episodes], sd)
+        stages["gripper_mask"] = gm = gripper_mask_stage(work, cfg, fp, files.zarr, [demos[e] for e in episodes],
+                                                         sd)
     except UmiAugError as exc:
         raise AugmentError(f"{files.root}: stage gripper_mask failed: {exc}") from exc
     views = [scene.scan_T_world_cam] + [demos[e].T_world_cam[: demos[e].contact_index + 1] for e in episodes
@@ -512,10 +517,14 @@ def square_fingerprint(files: SquareDemoFiles) -> str:
 
 @dataclass
 class SquareSource:
-    """What :func:`umi_aug.augment.export` needs of a square demo folder (``source=``)."""
+    """A square demo folder as :class:`~umi_aug.augment.sources.base.InputSource` (what
+    :func:`umi_aug.augment.export` runs for it: ``umi-aug augment DEMOS``, or ``source=`` of the API)."""
 
     demos_dir: Path
     inp: SquareInput = field(default_factory=SquareInput)
+
+    def reads(self) -> tuple[Path, ...]:
+        return (Path(self.demos_dir),)
 
     def check(self, image_size: int) -> SquareDemoFiles:
         return check_square_demos(self.demos_dir, image_size)
@@ -539,7 +548,9 @@ class SquareSource:
     def n_augment(self, n_episodes: int) -> int:
         return n_episodes if self.inp.episodes is None else len(set(self.inp.episodes))
 
-    def prepare(self, work: Path, cfg: AugmentConfig, progress: bool = True) -> SquareAssets:
+    def prepare(self, work: Path, cfg: AugmentConfig, progress: bool = True,
+                prefit_obstacles: Sequence[str] = ()) -> SquareAssets:
+        """The square stages (``prefit_obstacles`` unused: square demos have no obstacle mode)."""
         return prepare_square(self.demos_dir, work, cfg, self.inp, progress=progress)
 
 

@@ -32,7 +32,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from umi_aug.augment.exporter import IMAGE_KEY, RECORD_CHUNK, RECORD_KEYS, _append_episode, read_episode_records
+from umi_aug.augment.exporter import IMAGE_KEY, RECORD_CHUNK, RECORD_KEYS, append_episode, read_episode_records
 from umi_aug.data.schema import ACTION_KEY, SAMPLE_STEP_KEY
 from umi_aug.errors import AugmentError
 
@@ -131,7 +131,7 @@ def _add(buf, src, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_ro
         a = buf.meta[k]
         a.resize(a.shape[0] + 1)
         a[-1] = np.asarray(record[k], dtype=dt)
-    _append_episode(buf, lowdim, new_frames, src[IMAGE_KEY], src_rows)
+    append_episode(buf, lowdim, new_frames, src[IMAGE_KEY], src_rows)
 
 
 def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os.PathLike, n_demos: int, *,
