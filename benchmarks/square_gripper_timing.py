@@ -33,22 +33,21 @@ def grasp_timing(policy, env, probe, state: np.ndarray, config: int, camera=None
     from umi_aug.eval.rollout import rollout_config
 
     first: dict = {}
-    act = policy.act
+    step = env.step
 
-    def recording_act(e, obs):
-        a = act(e, obs)
+    def recording_step(a):  # the executed OSC action, before the state it is applied to changes
         if not first and float(a[-1]) > 0.0:  # OSC gripper command: +1 closes
             d = probe.site_pose()[:3, 3] - probe.nut_pose()[:3, 3]
             first.update(step=probe_step[0], above_m=float(d[2]), side_m=float(np.hypot(d[0], d[1])))
         probe_step[0] += 1
-        return a
+        return step(a)
 
     probe_step = [0]
-    policy.act = recording_act
+    env.step = recording_step
     try:
         rec = rollout_config(env, probe, policy, state, config, 0, horizon=horizon, camera=camera)
     finally:
-        policy.act = act
+        del env.step
     return {"config": config, "success": bool(rec["success"]), "lifted": bool(rec["lifted"]),
             "close_step": first.get("step"), "above_mm": 1000 * first["above_m"] if first else None,
             "side_mm": 1000 * first["side_m"] if first else None}

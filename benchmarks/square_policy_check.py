@@ -79,7 +79,8 @@ def main() -> None:
                     buf["robot0_eef_pos"][sl.start:sl.start + n_exec + 1]
                 demo = np.asarray(lab, np.float64)
                 for s in range(args.samples):
-                    chunk = pol.policy.predict_action(o, n_steps=n_exec + 1, generator=torch.Generator().manual_seed(s))
+                    chunk = pol.policy.predict_action(o, n_steps=n_exec + 1,
+                                                      generator=torch.Generator().manual_seed(s))["action"]
                     err = 1000 * np.linalg.norm(chunk[: len(demo), :3] - demo, axis=1)
                     t2.add_row(str(ep), str(s), " ".join(f"{e:.0f}" for e in err),
                                f"{1000 * np.linalg.norm(demo[-1] - demo[0]):.0f}")

@@ -82,8 +82,8 @@ class FakeCamera:
 
 
 class ScriptedPolicy:
-    """Returns a fixed [n, 7] chunk relative to the observed pose (``offsets`` added), taking ``infer_s`` of
-    fake time; records the observations it saw."""
+    """Returns ``{"action": a fixed [n, 7] chunk}`` relative to the observed pose (``offsets`` added), taking
+    ``infer_s`` of fake time; records the observations it saw."""
 
     def __init__(self, clock: FakeClock, offsets: np.ndarray, infer_s: float = 0.05, width: float = 0.05):
         self.clock, self.offsets, self.infer_s, self.width = clock, np.asarray(offsets, float), infer_s, width
@@ -100,4 +100,4 @@ class ScriptedPolicy:
         a = np.zeros((len(self.offsets), 7))
         a[:, :6] = cur + self.offsets
         a[:, 6] = self.width
-        return a
+        return {"action": a}

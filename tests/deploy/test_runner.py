@@ -105,7 +105,7 @@ def test_n_action_steps_is_passed_to_the_policy():
 
     def predict(obs, n_steps=None):
         asked.append(n_steps)
-        return orig(obs)[:n_steps]
+        return {"action": orig(obs)["action"][:n_steps]}
 
     pol.predict_action = predict
     logs = r.run(n_cycles=2)

@@ -1,4 +1,4 @@
-"""The harness renders only the wrist frames a checkpoint policy will look at (EvalPolicy.wants_image): the skipped
+"""The harness renders only the wrist frames a checkpoint policy will look at (PolicyDriver.wants_image): the skipped
 frames are exactly the ones no inference window uses, and a rollout with skipping equals one rendering every step."""
 
 from __future__ import annotations
@@ -25,26 +25,24 @@ class _FakePolicy:
 
     def predict_action(self, obs, n_steps, generator=None):
         self.seen.append([int(img[0]) for img in obs["camera0_rgb"]])
-        return np.zeros((n_steps, 7))
-
-
-_ENV = SimpleNamespace(tcp_pose=lambda: np.eye(4), gripper_width=lambda: 0.04)
+        return {"action": np.zeros((n_steps, 7))}
 
 
 def _run(To, down, horizon, n_exec, steps, skip):
     from umi_aug.eval.policies import CheckpointEvalPolicy
+    from umi_aug.eval.rollout import PolicyDriver
 
     fake = _FakePolicy(To, down, horizon, n_exec)
-    pol = CheckpointEvalPolicy(fake)
-    pol.reset(_ENV, 0, 0)
+    driver = PolicyDriver(CheckpointEvalPolicy(fake))
+    driver.reset(0)
     rendered = []
     obs = {"robot0_eef_pos": np.zeros(3), "robot0_eef_rot_axis_angle": np.zeros(3), "robot0_gripper_width": 0.04}
     for t in range(steps):
-        want = pol.wants_image() if skip else True
+        want = driver.wants_image() if skip else True
         obs["camera0_rgb"] = np.full(1, t) if want else None
         if want:
             rendered.append(t)
-        pol.act(_ENV, obs)
+        driver.act(obs, lambda: np.eye(4))
     return fake.seen, rendered
 
 

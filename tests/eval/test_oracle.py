@@ -47,6 +47,6 @@ def test_the_oracle_is_the_policy_path(rng):
             rows = [max(c - 1, 0), c]
             obs = {"robot0_eef_pos": pose6[rows, :3], "robot0_eef_rot_axis_angle": pose6[rows, 3:],
                    "robot0_gripper_width": demo.gripper[rows], "camera0_rgb": np.zeros((2, 16, 16, 3), np.uint8)}
-            chunk = pol.policy.predict_action(obs, n_steps=9)
+            chunk = pol.policy.predict_action(obs, n_steps=9)["action"]
             np.testing.assert_allclose(chunk[:, :3], want[c: c + 9, :3], atol=1e-5)
             np.testing.assert_allclose(chunk[:, 6], want[c: c + 9, 6], atol=1e-6)

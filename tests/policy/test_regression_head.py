@@ -76,8 +76,8 @@ def test_regression_head_learns_and_round_trips(dataset_path, tmp_path):
     assert isinstance(p1.model, RegressionChunkPolicy)
     p1.reset(start)
     p2.reset(start)
-    a1 = p1.predict_action(obs, generator=torch.Generator().manual_seed(1))
-    a2 = p2.predict_action(obs, generator=torch.Generator().manual_seed(2))
+    a1 = p1.predict_action(obs, generator=torch.Generator().manual_seed(1))["action"]
+    a2 = p2.predict_action(obs, generator=torch.Generator().manual_seed(2))["action"]
     assert a1.shape == (8, 7) and np.isfinite(a1).all()
     np.testing.assert_array_equal(a1, a2)  # deterministic: no sampling noise, whatever the generator
 

@@ -58,8 +58,8 @@ def test_checkpoint_round_trip_identical_predictions_and_resume(dataset_path, tm
     p1, p2 = Policy.from_checkpoint(ckpt), Policy.from_checkpoint(ckpt)
     for p in (p1, p2):
         p.reset(start)
-    a1 = p1.predict_action(obs, generator=torch.Generator().manual_seed(7))
-    a2 = p2.predict_action(obs, generator=torch.Generator().manual_seed(7))
+    a1 = p1.predict_action(obs, generator=torch.Generator().manual_seed(7))["action"]
+    a2 = p2.predict_action(obs, generator=torch.Generator().manual_seed(7))["action"]
     assert a1.shape == (8, 7) and a1.dtype == np.float64 and np.isfinite(a1).all()
     np.testing.assert_array_equal(a1, a2)
     # the EMA weights in the checkpoint are what the workspace trained
@@ -80,26 +80,28 @@ def test_policy_predict_action_interface(dataset_path, tmp_path):
     pol = Policy.from_checkpoint(ckpt)
     obs, start = _obs_window(dataset_path, 30)
     g = torch.Generator()
-    a = pol.predict_action(obs, n_steps=16, generator=g.manual_seed(0))
+    out = pol.predict_action(obs, n_steps=16, generator=g.manual_seed(0))
+    assert isinstance(out, dict) and set(out) == {"action"}  # Diffusion Policy's result (umi_aug.policy.contract)
+    a = out["action"]
     assert a.shape == (16, 7)
     # batched observations → batched actions, same values per entry
     pol.reset(np.stack([start, start])[:, None])
     batched = {k: np.stack([v, v]) for k, v in obs.items()}
-    b = pol.predict_action(batched, n_steps=4, generator=g.manual_seed(1))
+    b = pol.predict_action(batched, n_steps=4, generator=g.manual_seed(1))["action"]
     assert b.shape == (2, 4, 7)
     # translating the whole world (obs + start) translates the actions: they are relative to the current pose
     pol.reset(start)
-    a0 = pol.predict_action(obs, generator=g.manual_seed(3))
+    a0 = pol.predict_action(obs, generator=g.manual_seed(3))["action"]
     moved = dict(obs, robot0_eef_pos=obs["robot0_eef_pos"] + np.float32([0.5, -0.2, 0.1]))
     s2 = start.copy()
     s2[:3] += [0.5, -0.2, 0.1]
     pol.reset(s2)
-    a1 = pol.predict_action(moved, generator=g.manual_seed(3))
+    a1 = pol.predict_action(moved, generator=g.manual_seed(3))["action"]
     np.testing.assert_allclose(a1[:, :3] - a0[:, :3], np.broadcast_to([0.5, -0.2, 0.1], (8, 3)), atol=1e-4)
     np.testing.assert_allclose(a1[:, 3:], a0[:, 3:], atol=1e-4)
     # larger camera frames are centre-cropped and resized like UMI
     big = dict(obs, camera0_rgb=np.zeros((2, 48, 64, 3), np.uint8))
-    assert pol.predict_action(big).shape == (8, 7)
+    assert pol.predict_action(big)["action"].shape == (8, 7)
     with pytest.raises(PolicyError, match="robot0_gripper_width"):
         pol.predict_action({k: v for k, v in obs.items() if k != "robot0_gripper_width"})
     with pytest.raises(PolicyError, match="n_steps"):

@@ -1,4 +1,5 @@
-"""Policies the runner can drive besides a trained checkpoint (``Policy.from_checkpoint``)."""
+"""Policies the runner can drive besides a trained checkpoint (``Policy.from_checkpoint``); each implements the
+policy contract of :mod:`umi_aug.policy.contract` (``reset()``, ``predict_action(obs_dict) -> {"action": …}``)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from umi_aug.deploy.interpolator import pose_distance
 from umi_aug.errors import DeployError
 from umi_aug.geometry.interp import interpolate_pose
 from umi_aug.geometry.se3 import pos_rotvec_to_pose, pose_to_pos_rotvec
+from umi_aug.policy.contract import ACTION_KEY
 
 __all__ = ["ReachPolicy", "REACH_MAX_DISTANCE_BOUND_M"]
 
@@ -18,8 +20,8 @@ REACH_MAX_DISTANCE_BOUND_M = 0.85
 
 class ReachPolicy:
     """Scripted: move the TCP in a straight line (slerped rotation) to ``target`` [6] (base frame, m / rotvec)
-    at ``speed`` m/s and ``rot_speed`` rad/s, gripper to ``gripper_width``; returns ``[n_steps, 7]`` absolute
-    actions spaced ``dt`` like a trained policy's chunk (the first is the current step).
+    at ``speed`` m/s and ``rot_speed`` rad/s, gripper to ``gripper_width``; returns ``{"action": [n_steps, 7]}``
+    absolute actions spaced ``dt`` like a trained policy's chunk (the first is the current step).
 
     A target farther than ``max_distance_m`` (m, at most :data:`REACH_MAX_DISTANCE_BOUND_M`) from the observed
     TCP is refused with :class:`DeployError` (the runner's pre-flight observation asks first, before anything
@@ -41,7 +43,7 @@ class ReachPolicy:
     def reset(self) -> None:
         pass
 
-    def predict_action(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+    def predict_action(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         cur = np.concatenate([np.asarray(obs["robot0_eef_pos"])[-1], np.asarray(obs["robot0_eef_rot_axis_angle"])[-1]])
         dpos, drot = pose_distance(cur, self.target)
         if dpos > self.max_distance_m:
@@ -54,4 +56,4 @@ class ReachPolicy:
         out = np.empty((self.n_steps, 7))
         out[:, :6] = pose_to_pos_rotvec(T)
         out[:, 6] = self.width
-        return out
+        return {ACTION_KEY: out}

@@ -5,7 +5,8 @@ the table (:meth:`PolicyRunner.preflight` did the same before the devices were e
 
 1. observations: the latest camera frames at ``t_last − arange(H)[::-1]·down_sample/fps`` and robot TCP pose and
    gripper width interpolated to the same timestamps (UMI ``get_obs``); each stream's age is checked;
-2. ``policy.predict_action(obs)`` → absolute ``[n, 7]`` (pos, rotvec, gripper width);
+2. ``policy.predict_action(obs)["action"]`` → absolute ``[n, 7]`` (pos, rotvec, gripper width); the policy is
+   anything with the contract of :mod:`umi_aug.policy.contract` (``reset()``, ``predict_action(obs_dict)``);
 3. late actions (``late_actions``): action ``k`` is due at ``t_obs_last + k·dt``; actions due before
    ``now + action_exec_latency + max(action latencies)`` — their latency-compensated time has passed — are
    dropped and counted (UMI drops at ``now + action_exec_latency`` and its controller then ignores the ones whose
@@ -27,7 +28,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 import numpy as np
 
@@ -36,6 +37,7 @@ from umi_aug.deploy.interfaces import CameraInterface, GripperInterface, RobotIn
 from umi_aug.deploy.interpolator import PoseTrajectoryInterpolator, ScalarTrajectoryInterpolator
 from umi_aug.deploy.safety import SafetyLimits, SafetyStop, check_command, check_obs_age, check_start_pose
 from umi_aug.errors import DeployError
+from umi_aug.policy.contract import PolicyLike, action_chunk
 
 __all__ = ["RunnerConfig", "ObsSpec", "PolicyRunner", "CycleLog", "Preflight", "select_actions", "LATE_ACTIONS"]
 
@@ -44,12 +46,6 @@ log = logging.getLogger(__name__)
 #: ``late_actions`` rules: "drop" = UMI's (past actions dropped, the arm holds when none is left, the observation
 #: age re-checked after inference); "next_slot" = the earlier rule (the last action moved to the next free slot).
 LATE_ACTIONS = ("drop", "next_slot")
-
-
-class PolicyLike(Protocol):
-    def predict_action(self, obs_dict: dict[str, np.ndarray]) -> np.ndarray: ...
-
-    def reset(self) -> None: ...
 
 
 @dataclass
@@ -81,7 +77,8 @@ class RunnerConfig:
     start_delay: float = 1.0
     max_duration: float = 60.0
     dry_run: bool = False
-    n_action_steps: int | None = None  # passed as predict_action(n_steps=...); UMI's eval uses the whole horizon
+    n_action_steps: int | None = None  # passed as predict_action(n_steps=...), a keyword beyond the contract that
+    # umi_aug.policy.Policy takes (app.py sets it for a checkpoint: UMI's eval uses the whole horizon)
     late_actions: str = "drop"  # "drop" (UMI: drop the past, hold, count) | "next_slot" (earlier rule, opt-in)
 
     def __post_init__(self) -> None:
@@ -192,9 +189,9 @@ class PolicyRunner:
         return obs, low_ts
 
     def _predict(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """``policy.predict_action`` → [n, >=7] float64 actions (checked shape)."""
+        """``policy.predict_action(obs)["action"]`` → [n, >=7] float64 actions (checked shape)."""
         kw = {} if self.cfg.n_action_steps is None else {"n_steps": int(self.cfg.n_action_steps)}
-        action = np.asarray(self.policy.predict_action(obs, **kw), np.float64)
+        action = np.asarray(action_chunk(self.policy.predict_action(obs, **kw)), np.float64)
         if action.ndim != 2 or action.shape[1] < 7 or len(action) < 1:
             raise DeployError(f"policy returned actions of shape {action.shape}; expected [n, 7]")
         return action
@@ -219,8 +216,7 @@ class PolicyRunner:
         cur = np.concatenate([obs["robot0_eef_pos"][-1], obs["robot0_eef_rot_axis_angle"][-1]])
         width = float(obs["robot0_gripper_width"][-1, 0])
         check_start_pose(cur, width, self.limits)
-        if hasattr(self.policy, "reset"):
-            self.policy.reset()
+        self.policy.reset()
         return Preflight(cur, width, self._predict(obs)[:, :7], self.cfg.dt)
 
     # ------------------------------------------------------------------ one cycle
@@ -282,8 +278,7 @@ class PolicyRunner:
         """Run until ``n_cycles`` cycles, ``cfg.max_duration`` or ``done(cycle_log)``; robot and gripper are
         halted on every exit path. Exceptions propagate after the halt (``self.stop_reason`` holds the message)."""
         cfg = self.cfg
-        if hasattr(self.policy, "reset"):
-            self.policy.reset()
+        self.policy.reset()
         t_start = self.clock.now() + cfg.start_delay
         try:
             self.check_start()  # again after enabling (a moveJ to joints_init may have moved the arm)

@@ -1,10 +1,13 @@
 """One evaluation rollout of the square task from a stored start configuration, with its record.
 
-Per control step (20 Hz): observe (low-dim always; the fisheye wrist image only when the policy has an
-``image_size``, and only at the steps whose frame it will look at: ``EvalPolicy.wants_image``) →
-``policy.act`` → ``env.step``. Time is split into ``sim`` (``env.step`` incl. robosuite's
-observation), ``render`` (fisheye wrist image), ``policy`` (``act``, incl. inference) and ``other`` (sub-goal and
-contact checks, reset). Recorded (all world frame, metres):
+The policy is driven through the one policy contract only (:mod:`umi_aug.policy.contract`), by a
+:class:`PolicyDriver` as Diffusion Policy's env runner drives its policies: per control step (20 Hz) observe
+(low-dim always; the fisheye wrist image only when the policy's :class:`~umi_aug.eval.policies.RolloutSpec` has an
+``image_size``, and only at the steps whose frame a coming inference will look at: :meth:`PolicyDriver.wants_image`)
+→ when the queue of actions is empty, ``policy.predict_action(obs_dict)`` on the observation window → the next
+queued row as the env's OSC_POSE delta → ``env.step``. Time is split into ``sim`` (``env.step`` incl. robosuite's
+observation), ``render`` (fisheye wrist image), ``policy`` (the driver, incl. inference) and ``other`` (sub-goal
+and contact checks, reset). Recorded (all world frame, metres):
 
 * ``success`` — robosuite's task success (nut on the square peg AND gripper ≥ ~4 cm away) at ANY step, as
   Diffusion Policy scores it (max reward over the episode); ``steps_to_success`` = first such step (1-based);
@@ -23,18 +26,26 @@ contact checks, reset). Recorded (all world frame, metres):
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
+from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from umi_aug.errors import PolicyError
+from umi_aug.eval.policies import PRIVILEGED_KEY, PrivilegedState, RolloutSpec, abs_tcp_to_osc_delta
+from umi_aug.policy.contract import PolicyLike, SeedablePolicy, action_chunk
 from umi_aug.sim.square.expert import (PREGRASP_POS_TOL_M, PREGRASP_ROT_TOL_DEG, expert_pregrasp_pose,
                                        pregrasp_error)
 
 __all__ = ["PREGRASP_POS_TOL_M", "PREGRASP_ROT_TOL_DEG", "LIFT_HEIGHT_M", "expert_pregrasp_pose",
-           "SceneProbe", "rollout_config", "VideoSpec"]
+           "SceneProbe", "PolicyDriver", "rollout_config", "VideoSpec"]
+
+#: the low-dim observation keys of the square env a policy gets (training's keys; the width as [1])
+LOW_DIM_KEYS: tuple[str, ...] = ("robot0_eef_pos", "robot0_eef_rot_axis_angle", "robot0_gripper_width")
 
 #: nut lift sub-goal: nut centre this far above its start height (m) with a finger touching it
 LIFT_HEIGHT_M: float = 0.03
@@ -93,6 +104,103 @@ class SceneProbe:
 
     def on_peg(self) -> bool:
         return bool(self.env.rs.on_peg(self.nut_pose()[:3, 3], 0))
+
+
+class PolicyDriver:
+    """Drives one policy through the contract during a rollout, as Diffusion Policy's env runner with its
+    multi-step wrapper does: observation history → obs_dict window → ``predict_action`` when the queue of actions
+    is empty → one queued row per control step as the square env's OSC_POSE delta.
+
+    The window holds the last ``To`` observations spaced ``obs_down_sample_steps`` control steps apart, oldest
+    first (early windows pad with the first); ``camera0_rgb`` holds its newest ``img_obs_horizon`` frames,
+    the low-dim keys their newest ``low_dim_obs_horizon`` rows — a training sample's observation. The rows
+    ``first_action …`` of each chunk are queued, each held for ``obs_down_sample_steps`` control steps.
+
+    Args:
+        policy: any :class:`~umi_aug.policy.contract.PolicyLike`.
+        spec: how to run it (default :meth:`RolloutSpec.of(policy) <umi_aug.eval.policies.RolloutSpec.of>`).
+    """
+
+    def __init__(self, policy: PolicyLike, spec: RolloutSpec | None = None) -> None:
+        self.policy = policy
+        self.spec = spec or RolloutSpec.of(policy)
+        self._To = self.spec.obs_horizon
+        self._down = int(self.spec.obs_down_sample_steps)
+        self._hist: deque = deque(maxlen=(self._To - 1) * self._down + 1)
+        self._queue: list[np.ndarray] = []
+
+    def reset(self, seed: int) -> None:
+        """Start a rollout: ``policy.reset()``; a :class:`~umi_aug.policy.contract.SeedablePolicy` is seeded with
+        ``seed`` (its randomness is then a function of the rollout seed alone)."""
+        self.policy.reset()
+        if isinstance(self.policy, SeedablePolicy):
+            self.policy.seed(seed)
+        self._hist.clear()
+        self._queue = []
+
+    def wants_image(self) -> bool:
+        """True iff the frame of the coming :meth:`act` enters some future inference's observation window.
+
+        Inferences happen when the queue runs empty: in ``q`` steps (``q`` = rows still queued; now if 0), then
+        every ``L = n_action_steps · obs_down_sample_steps`` steps; each looks back at offsets
+        ``0, down, …, (To−1)·down``. The very first frame is always kept (early windows pad with it); with no fixed
+        ``n_action_steps`` every frame is. With UMI's ``To = 2``, 8 executed targets and ``down = 1`` this renders
+        2 frames in 8.
+        """
+        q = len(self._queue)
+        if q == 0 or not self._hist or self.spec.n_action_steps is None:
+            return True
+        L = self.spec.n_action_steps * self._down
+        return any(k * self._down >= q and (k * self._down - q) % L == 0 for k in range(self._To))
+
+    def _obs_dict(self) -> dict[str, Any]:
+        h = list(self._hist)
+        idx = [max(0, len(h) - 1 - k * self._down) for k in range(self._To)][::-1]
+        rows = [h[i] for i in idx]
+        low = rows[self._To - self.spec.low_dim_obs_horizon:]
+        out: dict[str, Any] = {k: np.stack([r[k] for r in low]) for k in LOW_DIM_KEYS}
+        if self.spec.image_size:
+            cam = rows[self._To - self.spec.img_obs_horizon:]
+            if any(r["camera0_rgb"] is None for r in cam):  # wants_image() said no to a frame used here: a bug
+                raise PolicyError(f"observation frames {idx} of {len(h)}: an image the schedule skipped is needed")
+            out["camera0_rgb"] = np.stack([r["camera0_rgb"] for r in cam])
+        return out
+
+    def act(self, obs: Mapping[str, Any], tcp_pose: Callable[[], np.ndarray],
+            privileged: Callable[[], PrivilegedState] | None = None) -> np.ndarray:
+        """The OSC_POSE delta ``[7]`` of this control step.
+
+        Args:
+            obs: this step's env observation (``robot0_eef_pos``, ``robot0_eef_rot_axis_angle``,
+                ``robot0_gripper_width``; ``camera0_rgb`` when the spec has an ``image_size``: the rendered image,
+                or ``None`` where :meth:`wants_image` said no).
+            tcp_pose: reads the current ``T_world_tcp`` [4, 4] (converting an absolute target).
+            privileged: reads the :class:`~umi_aug.eval.policies.PrivilegedState` (privileged controls only).
+        Raises:
+            PolicyError: a result without ``"action"``, or a chunk with no row to execute.
+        """
+        s = self.spec
+        row = {"robot0_eef_pos": np.asarray(obs["robot0_eef_pos"], np.float64),
+               "robot0_eef_rot_axis_angle": np.asarray(obs["robot0_eef_rot_axis_angle"], np.float64),
+               "robot0_gripper_width": np.asarray(obs["robot0_gripper_width"], np.float64).reshape(1)}
+        if s.image_size:
+            row["camera0_rgb"] = obs["camera0_rgb"]
+        self._hist.append(row)
+        if not self._queue:
+            obs_dict = self._obs_dict()
+            if s.privileged:
+                if privileged is None:
+                    raise PolicyError("a privileged control needs the simulator's state; none was given")
+                obs_dict[PRIVILEGED_KEY] = privileged()
+            chunk = np.asarray(action_chunk(self.policy.predict_action(obs_dict)), np.float64)
+            stop = None if s.n_action_steps is None else s.first_action + s.n_action_steps
+            todo = chunk[s.first_action:stop] if chunk.ndim == 2 and chunk.shape[1] == 7 else chunk[:0]
+            if len(todo) == 0:
+                raise PolicyError(f"predict_action returned an action chunk of shape {chunk.shape}; the square env "
+                                  f"executes rows {s.first_action} … of an [n, 7] chunk")
+            self._queue = [a for a in todo for _ in range(self._down)]
+        a = self._queue.pop(0)
+        return a if s.env_actions else abs_tcp_to_osc_delta(tcp_pose(), a, s.gripper_close_below_m)
 
 
 @dataclass
@@ -156,11 +264,13 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
     Args:
         env: :class:`~umi_aug.sim.square.env.SquareEnv` created with ``image_size=None`` (step renders nothing).
         probe: :class:`SceneProbe` of ``env``.
-        policy: an :class:`~umi_aug.eval.policies.EvalPolicy`.
+        policy: any :class:`~umi_aug.policy.contract.PolicyLike`, run as its
+            :class:`~umi_aug.eval.policies.RolloutSpec` says (:class:`PolicyDriver`).
         state: float64 [45] robomimic flattened state of the start configuration.
-        config, seed: configuration index and rollout seed (given to ``policy.reset``).
+        config, seed: configuration index (privileged controls read it) and rollout seed (seeds a
+            :class:`~umi_aug.policy.contract.SeedablePolicy`).
         camera: :class:`~umi_aug.sim.square.camera.WristFisheyeCamera` at the policy's image size (needed iff
-            ``policy.image_size``).
+            the spec has an ``image_size``).
         stop_on_success: end at the first successful step (robomimic's ``terminate_on_success``; the score —
             success at any step — is the same as running on).
         video: write videos of this rollout.
@@ -173,7 +283,8 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
     tm = {"sim": 0.0, "render": 0.0, "policy": 0.0, "other": 0.0}
     env.reset(seed=0)
     obs = env.reset_to(state, initial=True)
-    policy.reset(env, config, seed)
+    driver = PolicyDriver(policy)
+    driver.reset(seed)
     nut_rest = probe.nut_pose()
     T_pre = expert_pregrasp_pose(nut_rest, probe.table_z)
     rec: dict[str, Any] = {
@@ -189,14 +300,13 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
     touched = False  # a finger has touched the nut (from then on the pre-grasp goal and rest height are frozen)
     try:
         for t in range(int(horizon)):
-            if policy.image_size:  # only the frames the policy will look at (see EvalPolicy.wants_image)
+            if driver.spec.image_size:  # only the frames the policy will look at (PolicyDriver.wants_image)
                 t0 = time.perf_counter()
-                wants = getattr(policy, "wants_image", None)
                 obs["camera0_rgb"] = (camera.render(env.data, env.wrist_pose())
-                                      if render_every_step or wants is None or wants() else None)
+                                      if render_every_step or driver.wants_image() else None)
                 tm["render"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            action = policy.act(env, obs)
+            action = driver.act(obs, env.tcp_pose, lambda: PrivilegedState.read(env, config))
             t1 = time.perf_counter()
             obs, _, _, _ = env.step(action)
             t2 = time.perf_counter()
@@ -241,10 +351,8 @@ def rollout_config(env: Any, probe: SceneProbe, policy: Any, state: np.ndarray, 
     rec["collision_table"] = rec["collision_table_steps"] > 0
     rec["collision_peg"] = rec["collision_peg_steps"] > 0
     rec["steps"] = steps
-    import hashlib
-
     rec["final_state_sha1"] = hashlib.sha1(np.ascontiguousarray(env.get_state()).tobytes()).hexdigest()
-    if hasattr(policy, "info"):
+    if hasattr(policy, "info"):  # optional report of a scripted control (the expert's final phase)
         rec["policy_info"] = policy.info()
     rec["time_s"] = tm
     rec["wall_s"] = time.perf_counter() - t_start

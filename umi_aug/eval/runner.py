@@ -188,12 +188,14 @@ def _close_worker_state() -> None:
 
 def _run_task(task: tuple[dict[str, Any], int, np.ndarray, int, dict | None]) -> dict[str, Any]:
     """Worker body: one rollout (top-level so spawned processes and Ray can pickle it)."""
+    from umi_aug.eval.policies import RolloutSpec
     from umi_aug.eval.rollout import VideoSpec, rollout_config
 
     spec, config, state, seed, video = task
     w = _worker_state(spec)
     policy = w["policy"]
-    cam = w["camera"](policy.image_size) if policy.image_size else None
+    size = RolloutSpec.of(policy).image_size
+    cam = w["camera"](size) if size else None
     vspec = VideoSpec(**video) if video else None
     return rollout_config(w["env"], w["probe"], policy, state, config, seed, horizon=spec["horizon"], camera=cam,
                           stop_on_success=spec["stop_on_success"], video=vspec, camera_factory=w["camera"])

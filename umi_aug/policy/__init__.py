@@ -5,8 +5,10 @@
   representation).
 * :class:`RegressionChunkPolicy` — the same encoder with an MLP that regresses the chunk (``policy.action_head:
   regression``); both are :class:`ChunkPolicy`, built from a config by :func:`build_policy`.
-* :class:`Policy` — deployment wrapper: ``Policy.from_checkpoint(path).predict_action(env_obs)`` → absolute TCP
-  actions ``[n, 7]`` (pos, rotvec, gripper).
+* :class:`Policy` — deployment wrapper: ``Policy.from_checkpoint(path).predict_action(env_obs)`` →
+  ``{"action": absolute TCP actions [n, 7]}`` (pos, rotvec, gripper).
+* :class:`PolicyLike` — the one policy contract evaluation and deployment call (:mod:`umi_aug.policy.contract`:
+  Diffusion Policy's ``reset()`` / ``predict_action(obs_dict) -> {"action": chunk}``).
 * :class:`UmiPolicyDataset` — UMI sampling from a replay buffer; :class:`TrainWorkspace` — the training loop that
   ``train/train.py`` runs; typed configs in :mod:`umi_aug.policy.config`.
 
@@ -18,6 +20,7 @@ from umi_aug.policy.config import (
     AugConfig, DataloaderConfig, DeviceConfig, EncoderConfig, PolicyConfig, SchedulerConfig, TaskConfig,
     TrainConfig, TrainingConfig, check_aug, check_config, shape_meta, structured_config,
 )
+from umi_aug.policy.contract import ACTION_KEY, PolicyLike, SeedablePolicy, action_chunk
 
 __all__ = [
     "TrainConfig", "TaskConfig", "PolicyConfig", "EncoderConfig", "SchedulerConfig", "AugConfig", "DeviceConfig",
@@ -25,7 +28,7 @@ __all__ = [
     "ConditionalUnet1D", "LinearNormalizer", "ObsEncoder", "DiffusionUnetPolicy",
     "RegressionChunkPolicy", "ChunkPolicy", "build_policy", "UmiPolicyDataset", "AugmentedUmiDataset",
     "TrainWorkspace", "Policy", "save_checkpoint", "load_checkpoint",
-    "abs_actions_to_model", "model_actions_to_abs",
+    "abs_actions_to_model", "model_actions_to_abs", "PolicyLike", "SeedablePolicy", "ACTION_KEY", "action_chunk",
 ]
 
 _LAZY = {

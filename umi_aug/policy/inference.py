@@ -1,4 +1,5 @@
-"""Deployment interface: ``Policy.predict_action(obs_dict)`` → absolute TCP actions for the next n steps.
+"""Deployment interface: ``Policy.predict_action(obs_dict)`` → ``{"action": absolute TCP actions for the next n
+steps}`` — the policy contract of :mod:`umi_aug.policy.contract` (Diffusion Policy's ``BaseImagePolicy``).
 
 This is what the simulator evaluation and the UR runner call. It does what UMI's ``eval_real.py`` does around
 the network (``get_real_umi_obs_dict`` → ``policy.predict_action`` → ``get_real_umi_action``):
@@ -14,7 +15,7 @@ the network (``get_real_umi_obs_dict`` → ``policy.predict_action`` → ``get_r
   A leading batch axis (``[B, T, ...]``) is accepted for all keys at once.
 * poses become relative to the current (last) TCP pose; ``wrt_start`` uses the episode start pose given to
   :meth:`Policy.reset` (default: the current pose at the first call after a reset);
-* output: ``[n, 7·R]`` (or ``[B, n, 7·R]``) float64 = per arm ``[x, y, z, rx, ry, rz, gripper_width]``, absolute,
+* output: ``{"action": [n, 7·R]}`` (or ``[B, n, 7·R]``) float64 = per arm ``[x, y, z, rx, ry, rz, gripper_width]``, absolute,
   for the next ``n`` policy steps (spaced ``task.obs_down_sample_steps`` frames apart; the first is the current
   step, as in UMI's action window).
 """
@@ -165,9 +166,9 @@ class Policy:
 
     @torch.no_grad()
     def predict_action(self, obs_dict: Mapping[str, Any], n_steps: int | None = None,
-                       generator: torch.Generator | None = None) -> np.ndarray:
-        """Absolute TCP actions ``[n, 7·R]`` (``[B, n, 7·R]`` for batched obs): per arm pos (m), rotvec (rad),
-        gripper width (m), for the next ``n_steps`` (default ``policy.n_action_steps``) steps.
+                       generator: torch.Generator | None = None) -> dict[str, np.ndarray]:
+        """``{"action": absolute TCP actions [n, 7·R]}`` (``[B, n, 7·R]`` for batched obs): per arm pos (m), rotvec
+        (rad), gripper width (m), for the next ``n_steps`` (default ``policy.n_action_steps``) steps.
 
         ``generator`` (CPU ``torch.Generator``) makes the sampling noise reproducible."""
         n = self.n_action_steps if n_steps is None else int(n_steps)
@@ -177,4 +178,4 @@ class Policy:
         action10 = self.model.predict_action(model_obs, generator=generator)["action"].float().cpu().numpy()
         base = cur[:, 0] if self.task.n_robots == 1 else cur  # [B, 6] or [B, R, 6]
         act = model_actions_to_abs(action10.astype(np.float64), base, self.task.action_pose_repr)[:, :n]
-        return act if batched else act[0]
+        return {"action": act if batched else act[0]}
