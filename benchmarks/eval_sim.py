@@ -87,12 +87,13 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    from umi_aug.eval.policies import CheckpointEvalPolicy, ExpertEvalPolicy
-    from umi_aug.eval.rollout import SceneProbe
+    from umi_aug.eval.policies import CheckpointEvalPolicy
     from umi_aug.eval.runner import load_eval_configs
     from umi_aug.eval.stats import wilson_interval
-    from umi_aug.sim.square.camera import WristFisheyeCamera
-    from umi_aug.sim.square.env import SquareEnv
+    from umi_aug.square.camera import WristFisheyeCamera
+    from umi_aug.square.controls import ExpertEvalPolicy
+    from umi_aug.square.env import SquareEnv
+    from umi_aug.square.eval import SceneProbe
 
     configs = load_eval_configs(ROOT / "eval" / "square_init_configs_1000.npz")
     state = configs["states"][0]

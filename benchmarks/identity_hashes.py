@@ -16,7 +16,7 @@ The commands (each run by the Python of this checkout, so ``PYTHONPATH=<checkout
 
 Every output file is hashed (sha256 of its bytes); files a run writes for people to look at (pictures, logs, the stage
 cache) are listed separately, since a picture's encoder or a log's timestamps are not the outputs under test. The
-eval_sim ``results.jsonl`` rows are hashed without their wall-time fields (named in ``TIMING_KEYS``).
+eval_sim ``results.jsonl`` rows and JSON files are hashed without their wall-time and output-folder fields (named in ``TIMING_KEYS``).
 """
 from __future__ import annotations
 
@@ -30,7 +30,9 @@ import zipfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-TIMING_KEYS = ("wall_s", "seconds", "time_s", "elapsed_s", "policy_s", "sim_s")
+# fields that hold wall time or the run's own output folder, not results (eval_sim's summary.json and results.jsonl)
+TIMING_KEYS = ("wall_s", "seconds", "time_s", "elapsed_s", "policy_s", "sim_s", "time_per_step_ms", "time_split",
+               "mean_rollout_s", "rollouts_per_hour", "wall_s_this_run", "out_dir")
 REAL_DATASET = ROOT.parent / "shared" / "realdata" / "umi_cup_in_the_wild_ep0" / "dataset.zarr.zip"
 PICTURE_EXT = (".jpg", ".jpeg", ".png", ".log", ".txt", ".lock")
 

@@ -26,9 +26,9 @@ def chunk_fit(checkpoint: str, n_samples: int, seed: int = 0) -> dict:
     """Chunk errors of ``checkpoint`` on ``n_samples`` random samples of its training set (see module doc)."""
     import torch
 
-    from umi_aug.eval.policies import GRIPPER_CLOSE_BELOW_M
     from umi_aug.policy.dataset import UmiPolicyDataset
     from umi_aug.policy.inference import Policy
+    from umi_aug.square.commands import GRIPPER_CLOSE_BELOW_M
 
     pol = Policy.from_checkpoint(checkpoint)
     ds = UmiPolicyDataset(pol.cfg.task.dataset_path, pol.cfg.task, "train")

@@ -1,4 +1,4 @@
-"""Success rate and speed of the scripted square expert (umi_aug.sim.square.expert).
+"""Success rate and speed of the scripted square expert (umi_aug.square.expert).
 
 Run: ``python benchmarks/square_expert.py [--seeds 200] [--start-seed 0] [--workers 2] [--render-demos 3]``
 
@@ -29,13 +29,13 @@ _ENV = None
 
 def _init() -> None:
     global _ENV
-    from umi_aug.sim.square.env import SquareEnv
+    from umi_aug.square.env import SquareEnv
 
     _ENV = SquareEnv(image_size=None)
 
 
 def _run(seed: int) -> tuple[int, bool, int, float, str]:
-    from umi_aug.sim.square.rollout import rollout_expert
+    from umi_aug.square.episode import rollout_expert
 
     if _ENV is None:
         _init()
@@ -74,8 +74,8 @@ def main() -> None:
     print(f"| wall for all seeds | {wall:.0f} s |")
 
     if args.render_demos > 0:
-        from umi_aug.sim.square.env import SquareEnv
-        from umi_aug.sim.square.rollout import rollout_expert
+        from umi_aug.square.env import SquareEnv
+        from umi_aug.square.episode import rollout_expert
 
         print(f"\n## Time per demo with the fisheye wrist view (this process, {args.render_demos} seeds)")
         print("| image | s/demo | steps | ms/step | ratio to no-image rollout (same seeds) |\n|---|---|---|---|---|")

@@ -61,11 +61,12 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
-    from umi_aug.eval.policies import CheckpointEvalPolicy, ExpertEvalPolicy
-    from umi_aug.eval.rollout import SceneProbe
+    from umi_aug.eval.policies import CheckpointEvalPolicy
     from umi_aug.runtime import configure_threads
-    from umi_aug.sim.square.camera import WristFisheyeCamera
-    from umi_aug.sim.square.env import SquareEnv
+    from umi_aug.square.camera import WristFisheyeCamera
+    from umi_aug.square.controls import ExpertEvalPolicy
+    from umi_aug.square.env import SquareEnv
+    from umi_aug.square.eval import SceneProbe
 
     configure_threads()
     torch.set_num_threads(max(1, torch.get_num_threads()))

@@ -39,8 +39,8 @@ def main() -> None:
 
     from umi_aug.data import ReplayBuffer
     from umi_aug.eval.policies import CheckpointEvalPolicy
-    from umi_aug.sim.square.camera import WristFisheyeCamera
-    from umi_aug.sim.square.env import SquareEnv
+    from umi_aug.square.camera import WristFisheyeCamera
+    from umi_aug.square.env import SquareEnv
 
     torch.set_num_threads(1)
     report = Path(args.dataset).with_name("report.json")

@@ -14,7 +14,7 @@ Per evaluated demo, ``--poses`` wrist-camera poses: half are cone start poses
 (:func:`umi_aug.geometry.sample_cone_start_poses` around the demo's initial camera pose, pivot 0.15 m ahead on its
 optical axis, θ = 50°, r = 0.15 m: the study's augmentation cone), half lie on the straight path
 (:func:`umi_aug.geometry.interpolate_pose`, fraction U(0.2, 1)) from such a start to the expert's pre-grasp camera
-pose (:func:`umi_aug.sim.square.expert.expert_pregrasp_pose` → camera via ``T_CAM_TCP``). Ground truth = the
+pose (:func:`umi_aug.square.expert.expert_pregrasp_pose` → camera via ``T_CAM_TCP``). Ground truth = the
 simulator's fisheye render of the demo's initial state with the robot hidden (``scan`` kind ``"scene"``). Models:
 
 * ``composed``: static 3DGS + nut asset at the demo's nut pose (:func:`render_composed`);
@@ -49,7 +49,7 @@ import numpy as np  # noqa: E402
 
 
 def _states(env, shards: Path, n: int) -> list[np.ndarray]:
-    from umi_aug.sim.square.writers import load_episode
+    from umi_aug.square.writers import load_episode
 
     files = sorted(shards.glob("seed_*.npz")) if shards.is_dir() else []
     if len(files) >= n:
@@ -64,9 +64,9 @@ def _states(env, shards: Path, n: int) -> list[np.ndarray]:
 def eval_poses(model, state0: np.ndarray, n: int, seed: int) -> np.ndarray:
     """``[n, 4, 4]`` wrist-camera poses: ceil(n/2) cone starts, the rest on straight paths to the pre-grasp pose."""
     from umi_aug.geometry import interpolate_pose, pose_inverse, sample_cone_start_poses
-    from umi_aug.sim.square.camera import T_CAM_TCP, camera_pose_cv
-    from umi_aug.sim.square.expert import expert_pregrasp_pose
-    from umi_aug.sim.square.scan import body_pose, data_at_state
+    from umi_aug.square.camera import T_CAM_TCP, camera_pose_cv
+    from umi_aug.square.expert import expert_pregrasp_pose
+    from umi_aug.square.scan import body_pose, data_at_state
 
     rng = np.random.default_rng(seed)
     data = data_at_state(model, state0)
@@ -159,14 +159,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
 
-    from umi_aug.augment.square_scene import (SquareSceneConfig, build_square_scene, scene_parts, train_demo_scene)
     from umi_aug.runtime import configure_threads
-    from umi_aug.sim.square.camera import wrist_intrinsics
-    from umi_aug.sim.square.env import SquareEnv
-    from umi_aug.sim.square.scan import ScanRenderer, body_pose, data_at_state, hidden_geom_ids
     from umi_aug.splat.compose import render_composed, rgb_to_uint8
     from umi_aug.splat.ply import read_ply
     from umi_aug.splat.renderer import render
+    from umi_aug.square.camera import wrist_intrinsics
+    from umi_aug.square.env import SquareEnv
+    from umi_aug.square.scan import ScanRenderer, body_pose, data_at_state, hidden_geom_ids
+    from umi_aug.square.scene import (SquareSceneConfig, build_square_scene, scene_parts, train_demo_scene)
 
     configure_threads(int(os.environ.get("NUMBA_NUM_THREADS", "1")))
     load0 = open("/proc/loadavg").read().split()[:3]

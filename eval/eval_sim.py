@@ -44,7 +44,9 @@ def main(cfg: DictConfig) -> None:
         _RUN["out"] = out_dir
         log_to_file(out_dir / "eval_sim.log")
         configure_threads(1)
-        summary = run_eval(typed)
+        from umi_aug.square.eval import SQUARE_TASK  # after configure_threads: the simulator's libraries load here
+
+        summary = run_eval(typed, SQUARE_TASK)
     except UmiAugError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)

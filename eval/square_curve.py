@@ -92,9 +92,9 @@ def _check_same_recipe(record: Path, train_over: list[str]) -> None:
 
 
 def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -> None:
-    from umi_aug.augment.square_source import check_square_demos
     from umi_aug.io_utils import atomic_write_text
     from umi_aug.policy.checkpoint import load_checkpoint
+    from umi_aug.square.source import check_square_demos
 
     record = Path(args.record) / f"{args.name}.jsonl"
     _check_same_recipe(record, train_over)

@@ -23,9 +23,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--labels", default="commanded,reached", help="comma-separated: commanded, reached")
     ap.add_argument("--out", default=None, help="write the per-seed records as JSON here")
     args = ap.parse_args(argv)
-    from umi_aug.eval.oracle import LABELS, run_oracle
     from umi_aug.io_utils import atomic_write_text
     from umi_aug.runtime import configure_threads
+    from umi_aug.square.oracle import LABELS, run_oracle
 
     try:
         a, b = (int(x) for x in args.seeds.split(":"))

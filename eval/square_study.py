@@ -5,7 +5,7 @@
     python eval/square_study.py recipe=cpu phases=report       # only rewrite docs/square_study.{md,png}
     python eval/square_study.py recipe=paper                   # the paper-scale recipe (GPU machine)
 
-Any recipe field can be overridden as ``key=value`` (``umi_aug.eval.square_study.StudyConfig``); ``phases`` is a
+Any recipe field can be overridden as ``key=value`` (``umi_aug.square.study.StudyConfig``); ``phases`` is a
 comma list of data, train, eval, report. Rerunning the same command skips finished steps (the record's ``study_state.json``).
 Every key is checked before any work — the recipe's and the overrides', ``scene.*`` / ``spartn.*``, and the keys and
 values of ``train_overrides`` / ``eval_overrides`` — and a bad one ends in one ``square_study: …`` line (exit 2);
@@ -23,9 +23,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def main(argv: list[str]) -> int:
     from umi_aug.errors import UmiAugError
-    from umi_aug.eval.square_report import report_study
-    from umi_aug.eval.square_study import load_recipe, run_study
     from umi_aug.runtime import configure_threads
+    from umi_aug.square.report import report_study
+    from umi_aug.square.study import load_recipe, run_study
 
     recipe, phases, rest, show = "cpu", "data,train,eval,report", [], False
     for a in argv:

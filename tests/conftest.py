@@ -74,7 +74,7 @@ def demo_run(tmp_path_factory):
     return SimpleNamespace(out=out, args=args, rc=rc, printed=printed.getvalue())
 
 
-#: the shared square demo (tests/sim square data, tests/augment square source): seed and image side
+#: the shared square demo (tests/square: demo data, augmentation source): seed and image side
 SQUARE_DEMO_SEED = 7
 SQUARE_DEMO_SIZE = 84
 
@@ -84,7 +84,7 @@ def square_demo(tmp_path_factory):
     """One rendered scripted-expert square demo (``umi-aug square-demos --n 1``, seed 7, 84²; ~20 s on 2 cores),
     generated once per test session: ``(folder, report)``. Tests only read it (a resumed generate writes nothing)."""
     pytest.importorskip("robosuite")
-    from umi_aug.sim.square.generate import DemoConfig, generate_demos
+    from umi_aug.square.generate import DemoConfig, generate_demos
 
     out = tmp_path_factory.mktemp("square_demos")
     report = generate_demos(out, DemoConfig(n=1, image_size=SQUARE_DEMO_SIZE, workers=1,

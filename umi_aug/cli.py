@@ -178,12 +178,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     from umi_aug.augment.cli import add_augment_parser
 
-    add_augment_parser(sub)
+    add_augment_parser(sub).set_defaults(func=_cmd_augment)
 
-    from umi_aug.sim.square.cli import add_square_parsers  # imports neither robosuite nor MuJoCo
+    from umi_aug.square.cli import add_square_parsers  # imports neither robosuite nor MuJoCo
 
     add_square_parsers(sub)
     return p
+
+
+def _cmd_augment(args: argparse.Namespace) -> int:
+    """``umi-aug augment``: the export of any input kind, the square benchmark's demo folders included (their kind
+    is registered by importing :mod:`umi_aug.square.source`)."""
+    from umi_aug.augment.cli import cmd_augment
+    import umi_aug.square.source  # noqa: F401  lazy (torch, the augment stages): registers the kind "square"
+
+    return cmd_augment(args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,5 +1,6 @@
 """The input-source seam (issue #33 item 1): the registry picks one :class:`InputSource` per path, the built-in
-kinds satisfy the protocol, and a kind registered from outside is asked before the default (a UMI session)."""
+kinds and the square demos' (registered by ``umi_aug.square.source``, item 2) satisfy the protocol, and a kind
+registered from outside is asked before the default (a UMI session)."""
 
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ def test_built_in_kinds_are_detected_in_order(tmp_path):
     from umi_aug.augment.sources import InputSource, open_source, source_kind, source_kinds
     from umi_aug.augment.sources.dataset import DatasetSource
     from umi_aug.augment.sources.session import SessionSource
-    from umi_aug.augment.square_source import SquareInput, SquareSource
+    from umi_aug.square.source import SquareInput, SquareSource  # registers the kind "square"
 
     assert source_kinds() == ["dataset", "square", "session"]
     ds = tmp_path / "d.zarr.zip"
@@ -54,8 +55,8 @@ def test_built_in_kinds_are_detected_in_order(tmp_path):
 def test_settings_of_another_kind_are_refused(tmp_path):
     from umi_aug.augment.dataset_source import DatasetInput
     from umi_aug.augment.sources import open_source
-    from umi_aug.augment.square_source import SquareInput
     from umi_aug.errors import AugmentError
+    from umi_aug.square.source import SquareInput
 
     ds = tmp_path / "d.zarr.zip"
     ds.write_bytes(b"")
@@ -96,3 +97,25 @@ def test_export_checks_through_the_source(tmp_path):
     with pytest.raises(AugmentError, match="not a readable UMI replay buffer"):
         export(missing, out, AugmentConfig(image_size=64), progress=False, pictures=False)
     assert not out.exists() and not (tmp_path / "o.zarr.work").exists()
+
+
+def test_the_square_kind_is_registered_by_the_square_package(tmp_path):
+    """augment/ registers no square kind (issue #33 item 2): importing ``umi_aug.square.source`` adds it after
+    ``dataset``, and ``umi-aug augment`` imports it, so its flag check names a square folder as before."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    code = ("from umi_aug.augment.sources import source_kinds; before = source_kinds(); "
+            "import umi_aug.square.source; print(before, source_kinds())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root,
+                         env=env).stdout
+    assert out.strip() == "['dataset', 'session'] ['dataset', 'square', 'session']"
+    square = _square_folder(tmp_path / "sq")
+    res = subprocess.run([sys.executable, "-m", "umi_aug", "augment", str(square), "--out", str(tmp_path / "o.zarr"),
+                          "--tcp-offset", "0.2"], capture_output=True, text=True, cwd=root, env=env)
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines()[-1] == (f"umi-aug augment: error: --tcp-offset: {square} is a square demo "
+                                                   "folder; --tcp-offset applies to a plain dataset input: drop it")

@@ -1,5 +1,6 @@
-"""Fixtures of the evaluation-harness tests: one SquareEnv-backed harness per session (in this process), a tiny
-random-weight checkpoint, a recorded expert episode. Everything is generated here."""
+"""Fixtures of the evaluation-harness tests (the square task is the harness's test bed): one SquareEnv-backed
+harness per session (in this process), a tiny random-weight checkpoint, a recorded expert episode. Everything is
+generated here."""
 
 from __future__ import annotations
 
@@ -27,8 +28,10 @@ def _square_env_spec():
     if importlib.util.find_spec("robosuite") is None:  # not importorskip: MuJoCo must be imported via sim.gl
         pytest.skip("robosuite not installed (pip install 'umi-aug[robomimic]')")
     from umi_aug.eval.runner import load_eval_configs
+    from umi_aug.square.eval import SQUARE_TASK
 
-    return {"env_meta": load_eval_configs(CONFIGS_FILE)["env_args"], "key": "hold", "policy": "hold"}
+    return {"env_meta": load_eval_configs(CONFIGS_FILE)["env_args"], "key": "hold", "policy": "hold",
+            "task": SQUARE_TASK}
 
 
 @pytest.fixture

@@ -12,6 +12,7 @@ import pytest
 from umi_aug.errors import EvalError, PolicyError
 from umi_aug.eval.config import EvalSimConfig, parse_config_selection
 from umi_aug.eval.stats import wilson_interval
+from umi_aug.square.eval import SQUARE_TASK
 from tests.eval.conftest import CONFIGS_FILE
 
 TIMING_KEYS = ("time_s", "wall_s")
@@ -88,7 +89,7 @@ def test_malformed_configs_file_one_clear_error(tmp_path, breakage):
     elif breakage != "absent":
         np.savez(path, **src)
     with pytest.raises(EvalError) as exc:
-        run_eval(_cfg(tmp_path, policy="hold", configs_file=str(path)))
+        run_eval(_cfg(tmp_path, policy="hold", configs_file=str(path)), SQUARE_TASK)
     msg = str(exc.value)
     assert "configs_file" in msg and str(path) in msg
     expected = {"missing_key": "'states'", "bad_shape": "'T_world_cam'", "nan": "rows [7]", "garbage": "npz",
@@ -112,7 +113,7 @@ def test_malformed_checkpoint_one_clear_error(tmp_path, tiny_checkpoint, breakag
         sd.pop(next(k for k in sd if "weight" in k))
         torch.save(payload, str(bad))
     with pytest.raises((PolicyError, EvalError)) as exc:
-        run_eval(_cfg(tmp_path, policy="checkpoint", checkpoint=str(bad), configs="0:2"))
+        run_eval(_cfg(tmp_path, policy="checkpoint", checkpoint=str(bad), configs="0:2"), SQUARE_TASK)
     assert "bad.ckpt" in str(exc.value)
 
 
@@ -140,23 +141,24 @@ def test_resume_after_interrupted_run(tmp_path, square_env, monkeypatch):
 
     monkeypatch.setattr(ResultsLog, "append", dying_append)
     with pytest.raises(KeyboardInterrupt):
-        runner.run_eval(cfg)
+        runner.run_eval(cfg, SQUARE_TASK)
     monkeypatch.setattr(ResultsLog, "append", real_append)
     path = tmp_path / "run" / "results.jsonl"
     assert len(path.read_bytes().split(b"\n")) == 3  # 2 lines + the torn one
     ran = []
     real_task = runner._run_task
     monkeypatch.setattr(runner, "_run_task", lambda t: ran.append(t[1]) or real_task(t))
-    summary = runner.run_eval(cfg)
+    summary = runner.run_eval(cfg, SQUARE_TASK)
     assert ran == [5, 6, 7]
     lines = [json.loads(x) for x in path.read_text().splitlines()]
     assert sorted(r["config"] for r in lines) == [3, 4, 5, 6, 7]
     assert summary["n"] == 5
     # a third run does nothing and gives the same summary; a fresh uninterrupted run gives the same records
     ran.clear()
-    again = runner.run_eval(cfg)
+    again = runner.run_eval(cfg, SQUARE_TASK)
     assert ran == [] and _strip_summary(again) == _strip_summary(summary)
-    fresh = runner.run_eval(_cfg(tmp_path, policy="random", configs="3:8", horizon=5, out_dir=str(tmp_path / "b")))
+    fresh = runner.run_eval(_cfg(tmp_path, policy="random", configs="3:8", horizon=5, out_dir=str(tmp_path / "b")),
+                            SQUARE_TASK)
     fresh_lines = {json.loads(x)["config"]: json.loads(x) for x in (tmp_path / "b" / "results.jsonl").read_text()
                    .splitlines()}
     assert {r["config"]: _strip(r) for r in lines} == {k: _strip(v) for k, v in fresh_lines.items()}
@@ -164,7 +166,7 @@ def test_resume_after_interrupted_run(tmp_path, square_env, monkeypatch):
     assert (tmp_path / "run" / "init_success.png").stat().st_size > 10_000
     # the same folder with different settings is refused (no silent mixing)
     with pytest.raises(EvalError, match="horizon"):
-        runner.run_eval(_cfg(tmp_path, policy="random", configs="3:8", horizon=6))
+        runner.run_eval(_cfg(tmp_path, policy="random", configs="3:8", horizon=6), SQUARE_TASK)
 
 
 def _strip_summary(s: dict) -> dict:
@@ -175,9 +177,10 @@ def _strip_summary(s: dict) -> dict:
 def test_checkpoint_rollout_deterministic(square_env, tiny_checkpoint):
     """The same checkpoint + configuration + seed gives the same rollout, whatever ran before in that env."""
     from umi_aug.eval.policies import CheckpointEvalPolicy
-    from umi_aug.eval.rollout import SceneProbe, rollout_config
+    from umi_aug.eval.rollout import rollout_config
     from umi_aug.eval.runner import load_eval_configs, rollout_seed
-    from umi_aug.sim.square.camera import WristFisheyeCamera
+    from umi_aug.square.camera import WristFisheyeCamera
+    from umi_aug.square.eval import SceneProbe
 
     configs = load_eval_configs(CONFIGS_FILE)
     probe = SceneProbe(square_env)
@@ -199,9 +202,10 @@ def test_checkpoint_rollout_deterministic(square_env, tiny_checkpoint):
 
 
 def test_expert_needs_no_rendering(square_env):
-    from umi_aug.eval.policies import ExpertEvalPolicy
-    from umi_aug.eval.rollout import SceneProbe, rollout_config
+    from umi_aug.eval.rollout import rollout_config
     from umi_aug.eval.runner import load_eval_configs
+    from umi_aug.square.controls import ExpertEvalPolicy
+    from umi_aug.square.eval import SceneProbe
 
     configs = load_eval_configs(CONFIGS_FILE)
     rec = rollout_config(square_env, SceneProbe(square_env), ExpertEvalPolicy(), configs["states"][1], 1, 0,
@@ -217,18 +221,20 @@ def test_controls_replay_succeeds_hold_and_random_never(tmp_path, square_env):
     random actions never succeed (2 configurations each, 150 / 100 steps to stay CI-sized; the full-horizon
     controls over more configurations are in eval/README.md)."""
     from umi_aug.eval.runner import run_eval
-    from umi_aug.sim.square.rollout import rollout_expert
-    from umi_aug.sim.square.writers import save_episode
+    from umi_aug.square.episode import rollout_expert
+    from umi_aug.square.writers import save_episode
 
     shards = tmp_path / "shards"
     ep = rollout_expert(square_env, seed=123, render=False)
     assert ep.success
     save_episode(shards / "seed_0000123.npz", ep)
     rep = run_eval(_cfg(tmp_path, policy="replay", replay_dir=str(shards), configs="0:1", horizon=400,
-                        out_dir=str(tmp_path / "replay")))
+                        out_dir=str(tmp_path / "replay")), SQUARE_TASK)
     assert rep["successes"] == 1
-    hold = run_eval(_cfg(tmp_path, policy="hold", configs="0:2", horizon=150, out_dir=str(tmp_path / "hold")))
-    rnd = run_eval(_cfg(tmp_path, policy="random", configs="0:2", horizon=100, out_dir=str(tmp_path / "rnd")))
+    hold = run_eval(_cfg(tmp_path, policy="hold", configs="0:2", horizon=150, out_dir=str(tmp_path / "hold")),
+                    SQUARE_TASK)
+    rnd = run_eval(_cfg(tmp_path, policy="random", configs="0:2", horizon=100, out_dir=str(tmp_path / "rnd")),
+                   SQUARE_TASK)
     assert hold["successes"] == 0 and hold["subgoals"]["lifted"]["count"] == 0
     assert rnd["successes"] == 0 and rnd["subgoals"]["inserted"]["count"] == 0
 

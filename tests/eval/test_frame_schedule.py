@@ -42,7 +42,7 @@ def _run(To, down, horizon, n_exec, steps, skip):
         obs["camera0_rgb"] = np.full(1, t) if want else None
         if want:
             rendered.append(t)
-        driver.act(obs, lambda: np.eye(4))
+        driver.act(obs, lambda target, close_below_m: target)
     return fake.seen, rendered
 
 
@@ -70,9 +70,10 @@ def test_umi_schedule_renders_two_frames_in_eight():
 
 def test_skipping_gives_the_same_rollout(square_env, tiny_checkpoint):
     from umi_aug.eval.policies import CheckpointEvalPolicy
-    from umi_aug.eval.rollout import SceneProbe, rollout_config
+    from umi_aug.eval.rollout import rollout_config
     from umi_aug.eval.runner import load_eval_configs, rollout_seed
-    from umi_aug.sim.square.camera import WristFisheyeCamera
+    from umi_aug.square.camera import WristFisheyeCamera
+    from umi_aug.square.eval import SceneProbe
 
     configs = load_eval_configs(CONFIGS_FILE)
     probe = SceneProbe(square_env)

@@ -16,7 +16,7 @@ if importlib.util.find_spec("robosuite") is None:  # not importorskip: MuJoCo mu
 def test_demo_chunks_replayed_through_the_eval_interface_succeed():
     """≥ 95 % of 20 seeds (measured: 20/20). Before issue #29 the labels were the reached poses, executed with
     the expert's delta rule: the arm covered ~0.65 of each chunk and the replay never succeeded (0/13 here)."""
-    from umi_aug.eval.oracle import run_oracle
+    from umi_aug.square.oracle import run_oracle
 
     recs = run_oracle(list(range(20)))
     assert all(r["demo_success"] for r in recs)
@@ -31,7 +31,7 @@ def test_the_oracle_is_the_policy_path(rng):
     the observed pose: with the current pose equal to the demo's, the absolute targets are the labels."""
     from tests.policy.helpers import smooth_trajectory
     from umi_aug.data import make_umi_episode
-    from umi_aug.eval.oracle import OracleDemo, oracle_config, oracle_policy
+    from umi_aug.square.oracle import OracleDemo, oracle_config, oracle_policy
 
     T, g = smooth_trajectory(rng, 40)
     u = make_umi_episode(T, g)

@@ -77,8 +77,8 @@ class _BlankCamera:
 
 
 def _eval_kinds():
-    from umi_aug.eval.policies import (CheckpointEvalPolicy, ExpertEvalPolicy, HoldStillEvalPolicy,
-                                       RandomEvalPolicy, ReplayEvalPolicy)
+    from umi_aug.eval.policies import CheckpointEvalPolicy
+    from umi_aug.square.controls import ExpertEvalPolicy, HoldStillEvalPolicy, RandomEvalPolicy, ReplayEvalPolicy
 
     return {"expert": ExpertEvalPolicy(), "hold": HoldStillEvalPolicy(), "random": RandomEvalPolicy(0.5),
             "replay": ReplayEvalPolicy([np.zeros((3, 7))] * 5), "checkpoint": CheckpointEvalPolicy(_Network())}
@@ -86,8 +86,8 @@ def _eval_kinds():
 
 def test_every_policy_kind_is_the_one_contract():
     from umi_aug.deploy.policies import ReachPolicy
-    from umi_aug.eval.oracle import oracle_config, oracle_policy
-    from umi_aug.eval.policies import POLICY_KINDS
+    from umi_aug.square.eval import POLICY_KINDS
+    from umi_aug.square.oracle import oracle_config, oracle_policy
 
     kinds = _eval_kinds()
     assert set(kinds) == set(POLICY_KINDS)
@@ -125,8 +125,9 @@ def test_a_plain_policy_runs_in_the_robot_runner():
 
 
 def test_a_plain_policy_runs_in_the_simulated_evaluation(square_env):
-    from umi_aug.eval.rollout import SceneProbe, rollout_config
+    from umi_aug.eval.rollout import rollout_config
     from umi_aug.eval.runner import load_eval_configs
+    from umi_aug.square.eval import SceneProbe
 
     state = load_eval_configs(CONFIGS_FILE)["states"][0]
     plain = _Plain()
@@ -143,9 +144,11 @@ def test_a_plain_policy_runs_in_the_simulated_evaluation(square_env):
 def test_the_rollout_calls_only_the_contract(square_env, kind):
     """Each eval kind is driven by reset / predict_action (+ seed where seedable); the network's obs_dict is the
     training sample's keys and windows, the privileged entry goes to the expert and the replay only."""
-    from umi_aug.eval.policies import PRIVILEGED_KEY, PrivilegedState
-    from umi_aug.eval.rollout import SceneProbe, rollout_config
+    from umi_aug.eval.policies import PRIVILEGED_KEY
+    from umi_aug.eval.rollout import rollout_config
     from umi_aug.eval.runner import load_eval_configs
+    from umi_aug.square.controls import PrivilegedState
+    from umi_aug.square.eval import SceneProbe
 
     state = load_eval_configs(CONFIGS_FILE)["states"][2]
     pol = _eval_kinds()[kind]

@@ -1,22 +1,21 @@
-"""Augmentation pipeline (issue #9; paper §3, Fig. 2): an input (a UMI session, a plain UMI dataset or square
-demos) → many physically valid, visually consistent demonstrations, offline (:func:`export`) or per episode for an
-on-the-fly dataset (:func:`prepare_session` once, then :func:`plan_episode` + :func:`render_episode_frames`
-anywhere).
+"""Augmentation pipeline (issue #9; paper §3, Fig. 2): an input (a UMI session, a plain UMI dataset, or a kind
+registered from above, e.g. the square benchmark's demos) → many physically valid, visually consistent
+demonstrations, offline (:func:`export`) or per episode for an on-the-fly dataset (:func:`prepare_session` once,
+then :func:`plan_episode` + :func:`render_episode_frames` anywhere).
 
 How it is built (issue #33):
 
-- ``sources/`` — one :class:`~umi_aug.augment.sources.InputSource` per kind of input (``session``, ``dataset``,
-  ``square``; :func:`open_source` picks one per path, :func:`register_source` adds a kind): check →
-  fingerprint → prepare its stages → the :class:`SessionAssets` handle the episode loop consumes;
+- ``sources/`` — one :class:`~umi_aug.augment.sources.InputSource` per kind of input (built in: ``session``,
+  ``dataset``; :func:`open_source` picks one per path, :func:`register_source` adds a kind — ``umi_aug.square``
+  adds ``square``): check → fingerprint → prepare its stages → the :class:`SessionAssets` handle the episode loop
+  consumes;
 - ``stages.py`` — the stages the sources share (contact/splice frame, gripper overlay mask, untrained scene);
   ``cache.py`` runs every stage (cached on disk, skipped when up to date, only those the mode needs);
   ``obstacle_stage.py`` the obstacle Gaussians;
 - ``plan.py`` (cone start + obstacle placement → trajectory optimisation) and ``render.py`` (3DGS frames →
   gripper overlay, ``overlay.py``) — one episode, seeded per (demo, aug_id, mode);
 - ``exporter.py`` — the episode loop over any source: jobs in order, resumable, appended to a UMI replay buffer
-  (``encode.py``, ``executor.py``); ``cli.py`` the ``umi-aug augment`` command;
-- the square benchmark's input (``square_source.py``, ``square_scene.py``, ``square_variants.py``; to move out
-  with issue #33 item 2).
+  (``encode.py``, ``executor.py``); ``cli.py`` the ``umi-aug augment`` command.
 
 Importing this package is cheap (the CLI imports it to build its parser): every name below loads its module on
 first access.

@@ -172,16 +172,13 @@ def dataset_input_from_args(args: argparse.Namespace):
 
 def source_settings_from_args(kind: str, args: argparse.Namespace):
     """The input settings of a ``kind`` input (:func:`umi_aug.augment.sources.source_kind`) from its flags: a plain
-    dataset's :class:`~umi_aug.augment.dataset_source.DatasetInput`, a square folder's
-    :class:`~umi_aug.augment.square_source.SquareInput`, None for a session (it has none)."""
-    from umi_aug.augment.dataset_source import parse_episodes
-    from umi_aug.augment.square_source import SquareInput
+    dataset's :class:`~umi_aug.augment.dataset_source.DatasetInput`, a registered kind's own (its ``from_cli``:
+    a square folder's ``SquareInput``), None for a session (it has none)."""
+    from umi_aug.augment.sources import settings_from_cli
 
     if kind == "dataset":
         return dataset_input_from_args(args)
-    if kind == "square":
-        return SquareInput(episodes=parse_episodes(args.episodes), embodiment=not args.no_embodiment)
-    return None
+    return settings_from_cli(kind, args)
 
 
 def cmd_augment(args: argparse.Namespace) -> int:

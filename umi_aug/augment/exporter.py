@@ -474,12 +474,13 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
 
     Args:
         session_dir: the input: a UMI session folder, a plain UMI dataset (``*.zarr.zip`` / zarr directory; scenes
-            built from its own frames), a square demo folder, or any kind registered with
-            :func:`umi_aug.augment.sources.register_source` (:func:`~umi_aug.augment.sources.open_source` picks
-            its :class:`~umi_aug.augment.sources.InputSource`).
+            built from its own frames), or any kind registered with
+            :func:`umi_aug.augment.sources.register_source` (a square demo folder once ``umi_aug.square.source``
+            is imported; :func:`~umi_aug.augment.sources.open_source` picks its
+            :class:`~umi_aug.augment.sources.InputSource`).
         dataset_input: the input settings :func:`~umi_aug.augment.sources.open_source` passes on: a plain
-            dataset's :class:`~umi_aug.augment.dataset_source.DatasetInput`, a square folder's
-            :class:`~umi_aug.augment.square_source.SquareInput` (None: the defaults; a session has none).
+            dataset's :class:`~umi_aug.augment.dataset_source.DatasetInput`, a registered kind's own (a square
+            folder's ``SquareInput``; None: the defaults; a session has none).
         out_path: ``*.zip`` → a ``.zarr.zip`` written at the end (working directory ``<out>.partial``); anything
             else → a zarr directory written in place.
         cfg: :class:`AugmentConfig`.
@@ -495,7 +496,7 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
             an obstacle episode the scene's depth (for the obstacle's depth test) is rasterised only in the
             tiles where the obstacle shows.
         source: the :class:`~umi_aug.augment.sources.InputSource` of ``session_dir``, opened by the caller
-            (e.g. :class:`umi_aug.augment.square_source.SquareSource` with its settings); default:
+            (e.g. the square benchmark's ``SquareSource`` with its settings); default:
             ``open_source(session_dir, dataset_input)``.
         command: the command line that runs this export (``["umi-aug", "augment", ...]``, without ``--restart``),
             kept in the export's records with the working folder: ``umi-aug validate`` names it as the command that

@@ -2,8 +2,8 @@
 
 Every input source's ``prepare`` returns one (:mod:`umi_aug.augment.sources`): a UMI session's
 (:func:`umi_aug.augment.sources.session.prepare_session`), a plain dataset's
-(:class:`~umi_aug.augment.dataset_source.DatasetAssets`: one scene per group) or square demos'
-(:class:`~umi_aug.augment.square_source.SquareAssets`: one scene per demo); :meth:`SessionAssets.for_demo` gives
+(:class:`~umi_aug.augment.dataset_source.DatasetAssets`: one scene per group) or a registered kind's (square
+demos' ``SquareAssets`` in ``umi_aug.square.source``: one scene per demo); :meth:`SessionAssets.for_demo` gives
 the handle of a demo's scene. It keeps paths and small arrays; the heavy things (scene Gaussians, SDF, original
 dataset, obstacle models, trajectory problems) load lazily, once per process (shared by the handles of one scene:
 :meth:`SessionAssets.use_process_cache`), and are dropped when pickled.

@@ -17,7 +17,7 @@ SAMPLE_STEP_KEY = "umi_aug_sample_step"
 
 #: Optional ``data/`` array (umi-aug's; UMI's own dataset ignores it): float (N, 7·R) ABSOLUTE COMMANDED targets,
 #: per arm [pos(3) m, rotvec(3) rad, gripper width m]; row t = the target commanded for step t (row 0: the start
-#: pose). Written where the robot's controller lags its targets (the square env: ``umi_aug.sim.square.commands``);
+#: pose). Written where the robot's controller lags its targets (the square env: ``umi_aug.square.commands``);
 #: the policy labels with it when ``task.action_key`` names it.
 ACTION_KEY = "action"
 

@@ -38,7 +38,7 @@ STAGES: tuple[tuple[str, str, str], ...] = (
     ("traj", "umi_aug.traj", "SE(3) trajectory optimisation, RRT* (#6)"),
     ("augment", "umi_aug.augment", "augmentation pipeline, offline export (#9)"),
     ("policy", "umi_aug.policy", "Diffusion Policy + CLIP ViT-B/16, AugmentedUmiDataset (#8, #9)"),
-    ("square", "umi_aug.sim.square", "RoboMimic square, fisheye wrist camera, expert, IK start configs (#7)"),
+    ("square", "umi_aug.square", "RoboMimic square, fisheye wrist camera, expert, IK start configs (#7)"),
     ("eval", "umi_aug.eval", "policy evaluation over the 1000 start configs, UR deployment"),
 )
 

@@ -1,15 +1,21 @@
 """The evaluation loop over stored start configurations: selection, workers, resume, summary, pictures.
 
-:func:`run_eval` is what ``python eval/eval_sim.py`` calls. Each selected configuration is one task
-``(configuration index, state, rollout seed)``; tasks run through :func:`umi_aug.augment.executor.map_ordered`
-(in this process for ``workers=1``, spawned processes otherwise — one SquareEnv + one policy per process, built on
-its first task and reused, 1 torch/BLAS thread — or Ray with ``executor=ray``). Finished configurations are
-appended to ``results.jsonl`` as they come back; a rerun skips them, so an interrupted run resumes and a finished
-one only recomputes its summary (the same, since it is computed from the records alone).
+:func:`run_eval` is what ``python eval/eval_sim.py`` calls, with the benchmark to run on (a
+:class:`~umi_aug.eval.task.SimTask`; eval_sim's is the square task, :data:`umi_aug.square.eval.SQUARE_TASK`).
+Each selected configuration is one job ``(configuration index, state, rollout seed)``; jobs run through
+:func:`umi_aug.augment.executor.map_ordered` (in this process for ``workers=1``, spawned processes otherwise — one
+environment + one policy per process, built on its first job and reused, 1 torch/BLAS thread — or Ray with
+``executor=ray``). Finished configurations are appended to ``results.jsonl`` as they come back; a rerun skips
+them, so an interrupted run resumes and a finished one only recomputes its summary (the same, since it is computed
+from the records alone).
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import io
+import json
 import logging
 import math
 import time
@@ -18,13 +24,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
-from umi_aug.errors import EvalError, UmiAugError
+from umi_aug.augment.executor import map_ordered, usable_cores
+from umi_aug.errors import EvalError
 from umi_aug.eval.config import EvalSimConfig, parse_config_selection
+from umi_aug.eval.pictures import plot_init_success
+from umi_aug.eval.policies import CheckpointEvalPolicy, RolloutSpec
 from umi_aug.eval.results import ResultsLog, check_run_key, file_sha256
+from umi_aug.eval.rollout import VideoSpec, rollout_config
 from umi_aug.eval.stats import summarise
+from umi_aug.eval.task import SimTask
+from umi_aug.io_utils import atomic_write_text
 
-__all__ = ["run_eval", "load_eval_configs", "rollout_seed", "default_out_dir", "replay_configs"]
+__all__ = ["run_eval", "load_eval_configs", "rollout_seed", "default_out_dir", "policy_kinds"]
 
 log = logging.getLogger(__name__)
 
@@ -71,8 +84,6 @@ def load_eval_configs(path: str | Path) -> dict[str, Any]:
                             f"{bad[:5].tolist()}")
     env_args = None
     if "env_args" in data:
-        import json
-
         try:
             env_args = json.loads(str(data["env_args"]))
         except ValueError as exc:
@@ -81,29 +92,9 @@ def load_eval_configs(path: str | Path) -> dict[str, Any]:
             "source_index": data.get("source_index"), "env_args": env_args}
 
 
-def replay_configs(replay_dir: str | Path) -> tuple[dict[str, Any], list[np.ndarray], list[str]]:
-    """Start configurations + actions of recorded episode shards (``seed_*.npz`` in ``replay_dir``, sorted):
-    configuration ``i`` is shard ``i``'s own start state ``states[0]``."""
-    from umi_aug.geometry import pose_inverse
-    from umi_aug.sim.square.camera import T_CAM_TCP
-    from umi_aug.sim.square.writers import load_episode
-
-    d = Path(replay_dir)
-    files = sorted(d.glob("seed_*.npz")) if d.is_dir() else []
-    if not files:
-        raise EvalError(f"replay_dir={str(replay_dir)!r}: no episode shards seed_*.npz (umi-aug square-demos "
-                        f"writes them to <out>/shards/)")
-    states, T_cam, actions = [], [], []
-    for f in files:
-        try:
-            ep = load_episode(f)
-        except UmiAugError as exc:
-            raise EvalError(f"replay_dir: {exc}") from exc
-        states.append(ep.states[0])
-        T_cam.append(ep.T_world_tcp[0] @ pose_inverse(np.asarray(T_CAM_TCP)))
-        actions.append(ep.actions)
-    return ({"states": np.stack(states), "T_world_cam": np.stack(T_cam), "source_index": None, "env_args": None},
-            actions, [f.name for f in files])
+def policy_kinds(task: SimTask) -> tuple[str, ...]:
+    """The values of ``policy=`` on ``task``: ``checkpoint`` (the harness's own) and the task's scripted controls."""
+    return ("checkpoint", *task.controls)
 
 
 def default_out_dir(cfg: EvalSimConfig) -> Path:
@@ -115,51 +106,31 @@ def default_out_dir(cfg: EvalSimConfig) -> Path:
 
 
 def _build_policy(spec: dict[str, Any]):
-    from umi_aug.eval import policies as P
-
-    kind = spec["policy"]
-    if kind == "expert":
-        return P.ExpertEvalPolicy()
-    if kind == "hold":
-        return P.HoldStillEvalPolicy()
-    if kind == "random":
-        return P.RandomEvalPolicy(spec["random_scale"])
-    if kind == "replay":
-        return P.ReplayEvalPolicy(spec["replay_actions"])
-    if kind == "checkpoint":
-        return P.CheckpointEvalPolicy.from_checkpoint(spec["checkpoint"], device=spec["device"],
-                                      n_action_steps=spec["n_action_steps"],
-                                      gripper_close_below_m=spec["gripper_close_below_m"])
-    raise EvalError(f"policy={kind!r}: expected one of {list(P.POLICY_KINDS)}")
+    """The policy of a job's spec: a checkpoint, or one of the task's scripted controls."""
+    if spec["policy"] == "checkpoint":
+        return CheckpointEvalPolicy.from_checkpoint(spec["checkpoint"], device=spec["device"],
+                                                    n_action_steps=spec["n_action_steps"],
+                                                    gripper_close_below_m=spec["gripper_close_below_m"])
+    return spec["task"].control(spec["policy"], spec)
 
 
 def _worker_state(spec: dict[str, Any]) -> dict[str, Any]:
-    """This process's env (+ probe, cameras; rebuilt only when the env_meta changes) and policy (rebuilt when the
-    policy spec changes)."""
-    import json
-
-    env_key = json.dumps(spec["env_meta"], sort_keys=True, default=str)
+    """This process's env (+ probe, cameras; rebuilt only when the task or its env_meta changes) and policy
+    (rebuilt when the policy spec changes)."""
+    task: SimTask = spec["task"]
+    env_key = json.dumps([type(task).__qualname__, spec["env_meta"]], sort_keys=True, default=str)
     if _WORKER.get("env_key") != env_key:
         _close_worker_state()
-        import contextlib
-        import io
-
-        from umi_aug.eval.rollout import SceneProbe
-        from umi_aug.sim.square.camera import WristFisheyeCamera
-        from umi_aug.sim.square.env import SquareEnv
-
-        chatter = io.StringIO()  # robosuite/robomimic print banners and macro warnings: keep them off the console
+        chatter = io.StringIO()  # simulators print banners and macro warnings (robosuite): keep them off the console
         with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
-            env = SquareEnv(env_meta=spec["env_meta"], image_size=None)
+            env = task.make_env(spec["env_meta"])
         log.debug("environment created: %s", chatter.getvalue())
         cams: dict[int, Any] = {}
 
         def camera(size: int):
             if size not in cams:
-                cams[size] = WristFisheyeCamera(env.model, size)
+                cams[size] = task.camera(env, size)
                 if not _WORKER_CLOSE_REGISTERED:
-                    import atexit
-
                     # Free the GL contexts before MuJoCo's EGL atexit (registered at the first context, so it
                     # runs after this one) terminates the display; left to interpreter teardown, every context
                     # prints an EGLError traceback from GLContext.__del__.
@@ -167,7 +138,7 @@ def _worker_state(spec: dict[str, Any]) -> dict[str, Any]:
                     _WORKER_CLOSE_REGISTERED.append(True)
             return cams[size]
 
-        _WORKER.update(env_key=env_key, env=env, probe=SceneProbe(env), camera=camera, cameras=cams)
+        _WORKER.update(env_key=env_key, env=env, probe=task.probe(env), camera=camera, cameras=cams)
     if _WORKER.get("policy_key") != spec["key"]:
         _WORKER["policy"] = _build_policy(spec)
         _WORKER["policy_key"] = spec["key"]
@@ -186,12 +157,9 @@ def _close_worker_state() -> None:
     _WORKER.clear()
 
 
-def _run_task(task: tuple[dict[str, Any], int, np.ndarray, int, dict | None]) -> dict[str, Any]:
+def _run_task(job: tuple[dict[str, Any], int, np.ndarray, int, dict | None]) -> dict[str, Any]:
     """Worker body: one rollout (top-level so spawned processes and Ray can pickle it)."""
-    from umi_aug.eval.policies import RolloutSpec
-    from umi_aug.eval.rollout import VideoSpec, rollout_config
-
-    spec, config, state, seed, video = task
+    spec, config, state, seed, video = job
     w = _worker_state(spec)
     policy = w["policy"]
     size = RolloutSpec.of(policy).image_size
@@ -228,34 +196,29 @@ def _print_table(summary: dict[str, Any], title: str) -> None:
     Console().print(t)
 
 
-def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
-    """Evaluate ``cfg.policy`` on the selected configurations; returns the summary (also ``summary.json``).
+def run_eval(cfg: EvalSimConfig, task: SimTask) -> dict[str, Any]:
+    """Evaluate ``cfg.policy`` on the selected configurations of ``task``; returns the summary (also
+    ``summary.json``).
 
     Raises:
         EvalError: bad configuration file / selection / policy settings, or ``out_dir`` of a different run.
         PolicyError: a malformed checkpoint.
     """
-    from tqdm import tqdm
-
-    from umi_aug.augment.executor import map_ordered, usable_cores
-    from umi_aug.eval.pictures import plot_init_success
-    from umi_aug.eval.policies import POLICY_KINDS
-    from umi_aug.io_utils import atomic_write_text
-
-    if cfg.policy not in POLICY_KINDS:
-        raise EvalError(f"policy={cfg.policy!r}: expected one of {list(POLICY_KINDS)}")
+    kinds = policy_kinds(task)
+    if cfg.policy not in kinds:
+        raise EvalError(f"policy={cfg.policy!r}: expected one of {list(kinds)}")
     if int(cfg.horizon) < 1:
         raise EvalError(f"horizon={cfg.horizon!r}: need at least 1 control step")
     out_dir = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
     key: dict[str, Any] = {"policy": cfg.policy, "horizon": int(cfg.horizon), "seed": int(cfg.seed),
                            "stop_on_success": bool(cfg.stop_on_success)}
-    spec: dict[str, Any] = {"policy": cfg.policy, "horizon": int(cfg.horizon),
+    spec: dict[str, Any] = {"task": task, "policy": cfg.policy, "horizon": int(cfg.horizon),
                             "stop_on_success": bool(cfg.stop_on_success)}
     replay_actions = None
     if cfg.policy == "replay":
         if not cfg.replay_dir:
             raise EvalError("policy=replay needs replay_dir=<folder of episode shards seed_*.npz>")
-        configs, replay_actions, names = replay_configs(cfg.replay_dir)
+        configs, replay_actions, names = task.replay_configs(cfg.replay_dir)
         key["replay_episodes"] = names
         spec["replay_actions"] = replay_actions
     else:
@@ -263,8 +226,8 @@ def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
         key["configs_file_sha256"] = file_sha256(cfg.configs_file)
     if cfg.policy == "checkpoint":
         if not cfg.checkpoint:
-            raise EvalError("policy=checkpoint needs checkpoint=PATH (or policy=expert|replay|hold|random)")
-        from umi_aug.policy.checkpoint import checkpoint_file_problem
+            raise EvalError(f"policy=checkpoint needs checkpoint=PATH (or policy={'|'.join(task.controls)})")
+        from umi_aug.policy.checkpoint import checkpoint_file_problem  # lazy: torch, only for a checkpoint
 
         problem = checkpoint_file_problem(cfg.checkpoint)
         if problem:
@@ -273,8 +236,6 @@ def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
                 "gripper_close_below_m": float(cfg.gripper_close_below_m)}
         spec |= {"checkpoint": str(Path(cfg.checkpoint).resolve()), "device": cfg.device,
                  "n_action_steps": cfg.n_action_steps, "gripper_close_below_m": float(cfg.gripper_close_below_m)}
-        from umi_aug.eval.policies import CheckpointEvalPolicy
-
         CheckpointEvalPolicy.from_checkpoint(cfg.checkpoint, device=cfg.device,
                                              n_action_steps=cfg.n_action_steps)  # a bad checkpoint fails here
     if cfg.policy == "random":
@@ -324,11 +285,12 @@ def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
     finally:
         bar.close()
     recs = [done[i] for i in selected]
-    summary = summarise(recs, wall_seconds=time.perf_counter() - t0, workers=workers)
+    summary = summarise(recs, wall_seconds=time.perf_counter() - t0, workers=workers, subgoals=task.subgoals,
+                        collisions=task.collisions)
     summary |= {"workers": workers, "policy": cfg.policy, "checkpoint": cfg.checkpoint,
                 "configs_file": None if cfg.policy == "replay" else cfg.configs_file, "configs": cfg.configs,
-                "horizon": int(cfg.horizon), "seed": int(cfg.seed),
-                "pregrasp_tolerance": _pregrasp_tolerance(), "config": asdict(cfg)}
+                "horizon": int(cfg.horizon), "seed": int(cfg.seed), **task.summary_info(),
+                "config": asdict(cfg)}
     atomic_write_text(out_dir / "summary.json", _json(summary))
     plot_init_success(out_dir / "init_success.png", configs["T_world_cam"], done, selected,
                       title=f"{cfg.policy}{' ' + Path(cfg.checkpoint).name if cfg.checkpoint else ''}: "
@@ -338,15 +300,7 @@ def run_eval(cfg: EvalSimConfig) -> dict[str, Any]:
     return summary
 
 
-def _pregrasp_tolerance() -> dict[str, float]:
-    from umi_aug.eval.rollout import PREGRASP_POS_TOL_M, PREGRASP_ROT_TOL_DEG
-
-    return {"pos_m": PREGRASP_POS_TOL_M, "rot_deg": PREGRASP_ROT_TOL_DEG}
-
-
 def _json(obj: Any) -> str:
-    import json
-
     def clean(o):
         if isinstance(o, float) and not math.isfinite(o):
             return None

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -60,14 +60,16 @@ def _rate(records: list[dict[str, Any]], key: str) -> dict[str, Any]:
     return {"count": k, "rate": k / len(records) if records else float("nan"), "wilson95": [lo, hi]}
 
 
-def summarise(records: Iterable[dict[str, Any]], wall_seconds: float | None = None, workers: int = 1
-              ) -> dict[str, Any]:
+def summarise(records: Iterable[dict[str, Any]], wall_seconds: float | None = None, workers: int = 1,
+              subgoals: Sequence[str] = (), collisions: Sequence[str] = ()) -> dict[str, Any]:
     """Summary of rollout records (``umi_aug.eval.rollout.rollout_config`` dicts).
 
     Args:
         records: finished rollouts (order does not matter; the summary is sorted-order independent).
         wall_seconds: wall time of this invocation (used only for the informative ``rollouts_per_hour_wall``).
         workers: parallel workers (for ``rollouts_per_hour`` = workers × 3600 / mean rollout seconds).
+        subgoals, collisions: the task's boolean record fields reported as rates
+            (:attr:`umi_aug.eval.task.SimTask.subgoals` / ``collisions``).
     Returns:
         JSON-able dict: ``n``, ``success_rate`` + ``success_wilson95``, sub-goal rates, steps, collisions,
         ``time_per_step_ms`` split (sim / render / policy / other), rollouts per hour.
@@ -81,8 +83,8 @@ def summarise(records: Iterable[dict[str, Any]], wall_seconds: float | None = No
     out["successes"] = succ["count"]
     out["success_rate"] = succ["rate"]
     out["success_wilson95"] = succ["wilson95"]
-    out["subgoals"] = {k: _rate(recs, k) for k in ("pregrasp_reached", "lifted", "inserted")}
-    out["collisions"] = {k: _rate(recs, k) for k in ("collision_table", "collision_peg")}
+    out["subgoals"] = {k: _rate(recs, k) for k in subgoals}
+    out["collisions"] = {k: _rate(recs, k) for k in collisions}
     s2s = [r["steps_to_success"] for r in recs if r["success"]]
     out["mean_steps_to_success"] = float(np.mean(s2s)) if s2s else None
     out["mean_steps"] = float(np.mean([r["steps"] for r in recs]))

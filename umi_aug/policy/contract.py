@@ -13,7 +13,8 @@ this project's simulated evaluation (:func:`umi_aug.eval.rollout.rollout_config`
       robot{i}_gripper_width      [To, 1] float64, m
 
   A learned policy gets exactly these. The simulated evaluation adds one documented entry for its scripted
-  controls only (``privileged``: :class:`umi_aug.eval.policies.PrivilegedState`), never for a learned policy.
+  controls only (``privileged``: the task's snapshot, e.g. the square's ``PrivilegedState``), never for a learned
+  policy.
 * result: a mapping with at least :data:`ACTION_KEY` (``"action"``), the action chunk ``[n, Da]`` (Diffusion
   Policy's output dict; extra keys are allowed). For a robot arm ``Da = 7·R``: per arm the absolute TCP target
   ``[x, y, z, rx, ry, rz, gripper_width]`` (m, rotation vector in rad, m), row 0 at the current step, the rows one

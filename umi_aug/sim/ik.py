@@ -12,7 +12,7 @@ site Jacobian (``mj_jacSite``: linear rows, then angular rows, world frame) over
 
 Two callers, two parameter sets (:class:`DLSParams`; both kept exactly as they were before the solvers merged):
 
-* the square benchmark's Panda (:class:`umi_aug.sim.square.ik.PandaIK`): step limited in 2-norm (0.2 rad),
+* the square benchmark's Panda (:class:`umi_aug.square.ik.PandaIK`): step limited in 2-norm (0.2 rad),
   rotation error by :func:`umi_aug.geometry.so3_log`, up to 200 iterations; its path tracking
   (``PandaIK.refine``) also releases joints at a bound (``release_bounds``) and adds a null-space pull;
 * deploy's simulated UR5e (:class:`umi_aug.deploy.sim_arm.UR5eSim`, 500 Hz servo loop): step limited per joint

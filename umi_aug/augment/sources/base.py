@@ -30,7 +30,8 @@ from umi_aug.augment.config import AugmentConfig
 from umi_aug.augment.session_assets import SessionAssets
 from umi_aug.errors import AugmentError
 
-__all__ = ["InputSource", "SourceFactory", "register_source", "open_source", "source_kind", "source_kinds"]
+__all__ = ["InputSource", "SourceFactory", "register_source", "open_source", "source_kind", "source_kinds",
+           "settings_from_cli"]
 
 
 class InputSource(Protocol):
@@ -72,8 +73,8 @@ class InputSource(Protocol):
 
 
 #: ``factory(path, settings)``: the source of ``path`` (as the caller gave it: messages name it so); ``settings``
-#: are the kind's own input settings (a :class:`~umi_aug.augment.dataset_source.DatasetInput`, a
-#: :class:`~umi_aug.augment.square_source.SquareInput`) or None for its defaults.
+#: are the kind's own input settings (a :class:`~umi_aug.augment.dataset_source.DatasetInput`, or those of a kind
+#: registered from a package above, e.g. the square demos' ``SquareInput``) or None for its defaults.
 SourceFactory = Callable[["str | os.PathLike", Any], InputSource]
 
 
@@ -82,21 +83,24 @@ class _Kind:
     name: str
     detect: Callable[[Path], bool] | None  # None: the default kind
     factory: SourceFactory
+    from_cli: Callable[[Any], Any] | None = None  # parsed `umi-aug augment` flags -> the kind's settings
 
 
 _KINDS: list[_Kind] = []
 
 
-def register_source(kind: str, detect: Callable[[Path], bool] | None, factory: SourceFactory) -> None:
+def register_source(kind: str, detect: Callable[[Path], bool] | None, factory: SourceFactory,
+                    from_cli: Callable[[Any], Any] | None = None) -> None:
     """Add an input kind: ``detect(path)`` claims a path (asked in registration order, cheap, never raises),
-    ``factory(path, settings)`` opens it. ``detect=None`` makes ``kind`` the default: the source of any path no
-    other kind claims (one default; its :meth:`~InputSource.check` says what the path is not). Registering a
-    kind again replaces it in place.
+    ``factory(path, settings)`` opens it, ``from_cli(args)`` (optional) makes its settings from the parsed
+    ``umi-aug augment`` flags (:func:`settings_from_cli`). ``detect=None`` makes ``kind`` the default: the source
+    of any path no other kind claims (one default; its :meth:`~InputSource.check` says what the path is not).
+    Registering a kind again replaces it in place.
 
     Raises:
         AugmentError: a second default kind.
     """
-    new = _Kind(kind, detect, factory)
+    new = _Kind(kind, detect, factory, from_cli)
     for i, k in enumerate(_KINDS):
         if k.name == kind:
             _KINDS[i] = new
@@ -123,8 +127,8 @@ def source_kinds() -> list[str]:
 
 
 def source_kind(path: str | os.PathLike) -> str:
-    """The kind of input at ``path`` (``"dataset"``, ``"square"``, ``"session"`` or a registered one); reads only
-    what the detectors read, raises nothing for the built-in kinds."""
+    """The kind of input at ``path`` (``"dataset"``, ``"session"`` or a registered one, e.g. ``"square"``); reads
+    only what the detectors read, raises nothing for the built-in kinds."""
     return _kind_of(Path(path)).name
 
 
@@ -132,3 +136,12 @@ def open_source(path: str | os.PathLike, settings: Any = None) -> InputSource:
     """The :class:`InputSource` of ``path``: its kind's factory called with ``settings`` (the kind's own input
     settings, None for its defaults). Nothing is checked here (:meth:`InputSource.check` does)."""
     return _kind_of(Path(path)).factory(path, settings)
+
+
+def settings_from_cli(kind: str, args: Any) -> Any:
+    """The input settings of a registered ``kind`` from the parsed ``umi-aug augment`` flags ``args`` (its
+    ``from_cli``; None — the kind's defaults — when it registered none)."""
+    for k in _KINDS:
+        if k.name == kind:
+            return None if k.from_cli is None else k.from_cli(args)
+    raise AugmentError(f"input kind {kind!r}: not registered (registered: {source_kinds()})")

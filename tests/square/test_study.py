@@ -1,0 +1,318 @@
+"""The square study driver (issue #15): recipes, cells, step order, resume, time slices, failures, the report.
+
+The steps themselves (export, variants, train.py, eval_sim.py) are tested where they live; here they are replaced by
+recorders so the driver's bookkeeping is checked in well under a second per test.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from umi_aug.square import study as st
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _cfg(tmp_path: Path, *over: str) -> st.StudyConfig:
+    return st.load_recipe(ROOT / "configs" / "square_study" / "cpu.yaml",
+                          [f"out_dir={tmp_path / 'out'}", "record_dir=''", f"report_md={tmp_path / 'r.md'}",
+                           f"report_png={tmp_path / 'r.png'}", *over])
+
+
+def test_recipes_load_and_bad_keys_are_named(tmp_path):
+    cpu = _cfg(tmp_path)
+    assert cpu.sizes == [10, 25] and cpu.n_per_demo == 20 and cpu.theta_deg == 50.0
+    assert st.expected_rollouts(cpu) == 200  # the issue's >= 200 configurations
+    paper = st.load_recipe(ROOT / "configs" / "square_study" / "paper.yaml")
+    assert paper.sizes == [30, 50, 100, 150, 200] and st.expected_rollouts(paper) == 1000
+    with pytest.raises(st.StudyError, match="no_such_key"):
+        _cfg(tmp_path, "no_such_key=3")
+    with pytest.raises(st.StudyError, match="'magic'"):
+        _cfg(tmp_path, "variants=[none,magic]")
+    with pytest.raises(st.StudyError, match="sizes"):
+        _cfg(tmp_path, "sizes=[0]")
+    assert st.expected_rollouts(_cfg(tmp_path, "eval_configs='3,7,9'")) == 3
+    bad = tmp_path / "demos"
+    bad.mkdir()
+    (bad / "report.json").write_text("{not json")
+    with pytest.raises(st.StudyError, match="report.json: unreadable square-demos report"):
+        st.demos_ready(_cfg(tmp_path, f"demos_dir={bad}"))
+
+
+def test_the_study_trains_on_every_demo(tmp_path):
+    """B3: the study's training command (task=square + the recipe's overrides) holds no episode out — validation
+    never runs in the recipe, and UMI's 5 % hold-out would train `none_n10` on 9 demos."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+
+    from tests.policy.helpers import make_dataset, with_commanded_targets
+    from umi_aug.policy.config import TrainConfig, structured_config
+    from umi_aug.policy.dataset import UmiPolicyDataset
+
+    ConfigStore.instance().store(name="train_schema", node=TrainConfig)
+    ds = make_dataset(tmp_path / "d.zarr.zip", np.random.default_rng(0), n_episodes=10, length=30, size=84)
+    ds = with_commanded_targets(ds, tmp_path / "a.zarr.zip", np.random.default_rng(1))[0]  # task=square labels
+    for recipe in ("cpu", "paper"):
+        cfg = st.load_recipe(ROOT / "configs" / "square_study" / f"{recipe}.yaml")
+        cmd = st.train_command(cfg, {"name": "none_n10", "variant": "none", "n": 10})
+        over = [a for a in cmd[2:] if not a.startswith(("hydra.", "task.dataset_path="))]
+        with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+            typed = structured_config(compose("train", overrides=over))
+        assert typed.task.val_ratio == 0.0, recipe
+        train = UmiPolicyDataset(ds, typed.task, "train")
+        assert not train.val_mask.any() and len(train.get_validation_dataset()) == 0, recipe
+
+
+def test_cells_main_grid_then_sweep(tmp_path):
+    cells = st.study_cells(_cfg(tmp_path))
+    names = [c["name"] for c in cells]
+    assert names[:10] == [f"{v}_n{n}" for v in ("none", "ours", "gt_render", "action_only", "spartn")
+                          for n in (10, 25)]
+    # the sweep: every θ but the main one (its cell is ours_n10 of the grid), at the sweep size
+    assert names[10:] == ["ours_n10_theta20", "ours_n10_theta30", "ours_n10_theta40", "ours_n10_theta60"]
+    assert len(set(names)) == len(names)
+    assert st.study_cells(_cfg(tmp_path, "variants=[none,spartn]"))[-1]["name"] == "spartn_n25"  # no ours: no sweep
+
+
+def _fake_steps(monkeypatch, calls: list[str], fail: str | None = None, unfinished_eval: str | None = None):
+    """Every step replaced by a recorder that writes the output the driver checks; train.py / eval_sim.py are faked
+    at the subprocess, so the driver's own train / eval bookkeeping (record copies) runs for real."""
+    def demos(cfg):
+        calls.append("demos")
+        d = Path(cfg.demos_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "report.json").write_text(json.dumps({"successes": max(cfg.sizes),
+                                                   "config": {"image_size": cfg.image_size}}))
+        return {}
+
+    def export(cfg, theta):
+        calls.append(f"export_theta{theta:g}" if theta is not None else "export")
+        st.export_path(cfg, theta).parent.mkdir(parents=True, exist_ok=True)
+        st.export_path(cfg, theta).write_text("x")
+        return {"n_augmented": 3}
+
+    def variant(cfg, cell):
+        calls.append(f"variant/{cell['name']}")
+        if cell["name"] == fail:
+            raise st.StudyError("boom")
+        st.variant_path(cfg, cell).write_text("x")
+        return {}
+
+    def run(cmd, log_path):
+        arg = dict(a.split("=", 1) for a in cmd[2:] if "=" in a)
+        if cmd[1] == "train/train.py":
+            name = Path(arg["hydra.run.dir"]).name
+            calls.append(f"train/{name}")
+            ck = Path(arg["hydra.run.dir"]) / "checkpoints" / "latest.ckpt"
+            ck.parent.mkdir(parents=True, exist_ok=True)
+            ck.write_text("x")
+        else:
+            out = Path(arg["out_dir"])
+            calls.append(f"eval/{out.name}")
+            out.mkdir(parents=True, exist_ok=True)
+            n = 5 if out.name == unfinished_eval else 200
+            (out / "results.jsonl").write_text("".join(json.dumps({"config": i, "success": i % 2 == 0}) + "\n"
+                                                       for i in range(n)))
+            (out / "summary.json").write_text(json.dumps({"n": n, "success_rate": 0.5}))
+        return 0
+
+    monkeypatch.setattr(st, "_step_demos", demos)
+    monkeypatch.setattr(st, "_step_export", export)
+    monkeypatch.setattr(st, "_step_variant", variant)
+    monkeypatch.setattr(st, "_run", run)
+
+
+def _cell(name: str) -> list[str]:
+    return [f"train/{name}", f"eval/{name}"]
+
+
+def test_step_order_resume_and_unfinished_eval(tmp_path, monkeypatch):
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[30,50]", f"record_dir={tmp_path / 'record'}",
+               f"demos_dir={tmp_path / 'demos'}")
+    calls: list[str] = []
+    _fake_steps(monkeypatch, calls, unfinished_eval="ours_n25")
+    state = st.run_study(cfg, ("data", "train", "eval"))
+    # cell by cell, each with the data it needs first; a smaller size is cut from the largest one's dataset
+    assert calls == ["demos", "export", "variant/none_n25", "variant/none_n10", *_cell("none_n10"),
+                     *_cell("none_n25"), "variant/ours_n25", "variant/ours_n10", *_cell("ours_n10"),
+                     *_cell("ours_n25"), "export_theta30", "variant/ours_n10_theta30", *_cell("ours_n10_theta30")]
+    assert state["steps"]["export"]["n_augmented"] == 3 and state["steps"]["export"]["seconds"] >= 0
+    assert not state["steps"]["eval/ours_n25"]["done"]  # fewer rollouts than the subset: not done
+    saved = json.loads((tmp_path / "record" / "study_state.json").read_text())
+    assert saved["steps"].keys() == state["steps"].keys()
+    # finished cells are in the record; the unfinished one is not
+    rec = tmp_path / "record" / "evals"
+    assert sorted(p.name for p in rec.iterdir()) == ["none_n10", "none_n25", "ours_n10", "ours_n10_theta30"]
+    assert (rec / "none_n10" / "results.jsonl").read_text() == \
+        (st.eval_dir(cfg, {"name": "none_n10"}) / "results.jsonl").read_text()
+    calls.clear()
+    st.run_study(cfg, ("data", "train", "eval"))
+    assert calls == ["eval/ours_n25"]  # a rerun does only what is not done (eval_sim resumes its own results)
+
+
+def test_a_second_concurrent_run_is_refused_before_touching_anything(tmp_path, monkeypatch):
+    """Two runs on the same outputs or record would interleave steps and overwrite each other's state."""
+    from umi_aug.io_utils import exclusive_run_lock
+
+    cfg = _cfg(tmp_path, "variants=[none]", "sweep_thetas=[]", f"record_dir={tmp_path / 'record'}",
+               f"demos_dir={tmp_path / 'demos'}")
+    calls: list[str] = []
+    _fake_steps(monkeypatch, calls)
+    for held in (cfg.out / st.STUDY_LOCK, cfg.record / st.STUDY_LOCK):
+        with exclusive_run_lock(held, "square study"):
+            with pytest.raises(st.StudyError, match="another square study .* is running"):
+                st.run_study(cfg, ("data", "train", "eval"))
+        assert calls == [] and not (cfg.record / "study_state.json").exists()
+    st.run_study(cfg, ("data", "train", "eval"))  # free again
+    assert calls and (cfg.record / "study_state.json").exists()
+
+
+def test_a_fresh_machine_continues_from_the_record(tmp_path, monkeypatch):
+    import shutil
+
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[]", f"record_dir={tmp_path / 'record'}",
+               f"demos_dir={tmp_path / 'demos'}")
+    calls: list[str] = []
+    _fake_steps(monkeypatch, calls, unfinished_eval="ours_n25")
+    st.run_study(cfg, ("data", "train", "eval"))
+    shutil.rmtree(cfg.out)  # the machine is gone: datasets, checkpoints, partial evaluations with it
+    shutil.rmtree(tmp_path / "demos")
+    calls.clear()
+    _fake_steps(monkeypatch, calls)
+    state = st.run_study(cfg, ("data", "train", "eval"))
+    # only the unfinished cell, and only what it needs
+    assert calls == ["demos", "export", "variant/ours_n25", *_cell("ours_n25")]
+    assert state["steps"]["export"]["reruns"] == 1 and state["steps"]["train/ours_n25"]["reruns"] == 1
+    assert "reruns" not in state["steps"]["train/none_n10"]
+    assert state["steps"]["eval/ours_n25"]["done"]
+    assert json.loads((tmp_path / "record" / "evals" / "ours_n25" / "summary.json").read_text())["n"] == 200
+    # the report needs only the record
+    from umi_aug.square.report import report_study
+
+    shutil.rmtree(cfg.out)
+    rep = report_study(cfg)
+    assert all(rep["metrics"][c]["n"] == 200 for c in ("none_n10", "none_n25", "ours_n10", "ours_n25"))
+    assert "not evaluated yet" not in Path(cfg.report_md).read_text()
+    assert (tmp_path / "record" / "report.json").exists()
+
+
+def test_budget_stops_before_the_next_step_and_failures_are_recorded(tmp_path, monkeypatch):
+    import types
+
+    calls: list[str] = []
+    _fake_steps(monkeypatch, calls)
+    clock = [0.0]  # a fake clock: the export step takes 2 minutes, a cell's train + eval 30 minutes
+    monkeypatch.setattr(st, "time", types.SimpleNamespace(perf_counter=lambda: clock[0], time=lambda: 0.0,
+                                                          strftime=lambda f: "t"))
+    real_export, real_run = st._step_export, st._run
+
+    def slow_export(cfg, theta):
+        clock[0] += 120.0
+        return real_export(cfg, theta)
+
+    def slow_run(cmd, log_path):
+        clock[0] += 900.0
+        return real_run(cmd, log_path)
+
+    monkeypatch.setattr(st, "_step_export", slow_export)
+    monkeypatch.setattr(st, "_run", slow_run)
+    over = ("variants=[none]", "sweep_thetas=[]", f"demos_dir={tmp_path / 'demos'}")
+    cfg = _cfg(tmp_path, *over, "budget_min=1")
+    st.run_study(cfg, ("data", "train"))
+    assert calls == ["demos", "export"]  # the first steps run, none starts after the 1-minute budget
+    # a cell is not started when the cells recorded so far took longer than what is left
+    calls.clear()
+    st.run_study(_cfg(tmp_path, *over, "budget_min=45"), ("data", "train", "eval"))
+    assert calls == ["variant/none_n25", "variant/none_n10", *_cell("none_n10")]  # 30 min done, 30 needed, 15 left
+    assert st.cell_minutes_estimate(cfg, json.loads((cfg.out / "study_state.json").read_text())) == 30.0
+    monkeypatch.undo()
+    calls.clear()
+    _fake_steps(monkeypatch, calls, fail="none_n25")
+    with pytest.raises(st.StudyError, match="variant/none_n25.*boom"):
+        st.run_study(_cfg(tmp_path, "variants=[none]", "sweep_thetas=[]", "sizes=[25]",
+                          f"demos_dir={tmp_path / 'demos'}", f"out_dir={tmp_path / 'out2'}"), ("data",))
+    row = json.loads((tmp_path / "out2" / "study_state.json").read_text())["steps"]["variant/none_n25"]
+    assert row["done"] is False and row["error"] == "boom"
+
+
+def _write_results(d: Path, rows: list[dict]) -> None:
+    d.mkdir(parents=True)
+    (d / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def test_report_marks_unevaluated_cells_and_counts_what_was_recorded(tmp_path, rng):
+    from umi_aug.eval.stats import wilson_interval
+    from umi_aug.square.report import cell_metrics, write_report
+
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[40,50]")
+    cells = st.study_cells(cfg)
+    n = 20
+    succ = rng.random(n) < 0.3
+    rows = [{"config": i, "success": bool(s), "pregrasp_reached": bool(s or i % 2), "lifted": bool(s),
+             "inserted": bool(s), "collision_table": i % 3 == 0, "collision_peg": False,
+             "pregrasp_min_pos_err_m": 0.01 * (i + 1), "pregrasp_min_rot_err_deg": float(i),
+             "max_nut_rise_m": 0.01 if s else 0.0} for i, s in enumerate(succ)]
+    _write_results(st.eval_dir(cfg, cells[0]), rows)
+    _write_results(st.eval_dir(cfg, {"name": "ours_n10_theta40"}), rows[:5])
+    m = cell_metrics(st.eval_dir(cfg, cells[0]))
+    k = int(succ.sum())
+    assert m["n"] == n and m["success"]["count"] == k
+    assert m["success"]["wilson95"] == pytest.approx(list(wilson_interval(k, n)))
+    assert m["closest_pregrasp_mm_median"] == pytest.approx(1000 * np.median(0.01 * np.arange(1, n + 1)))
+    assert m["nut_moved"] == k
+    assert cell_metrics(st.eval_dir(cfg, cells[1])) is None
+    rep = write_report(cfg, cells, {"steps": {"train/none_n10": {"seconds": 120.0, "done": True}}})
+    md = Path(cfg.report_md).read_text()
+    assert f"| none | 10 | {n} | {100 * k / n:.1f} [" in md
+    assert md.count("not evaluated yet") == 3 + 1  # none_n25, ours_n10, ours_n25; sweep θ = 50 (ours_n10)
+    assert "| 40 | 5 |" in md and "| train/none_n10 | 2.0 |" in md
+    row40 = next(line for line in md.splitlines() if line.startswith("| 40 | 5 |")).split("|")
+    assert row40[7].strip().startswith("+0 [") and "/ +0.0 [" in row40[7]  # paired vs none_n10: the same rows
+    assert Path(cfg.report_png).stat().st_size > 10_000
+    assert f"]({os.path.relpath(cfg.report_png, Path(cfg.report_md).parent)})" in md  # the figure is shown
+    from umi_aug.square.report import _paired_deg  # the figure's orientation panels: same rows, no difference
+
+    assert _paired_deg(cfg, {"name": "ours_n10_theta40"}, 10) == (0.0, 0.0, 0.0)
+    assert _paired_deg(cfg, {"name": "ours_n25"}, 25) is None
+    rows_b = [dict(r, pregrasp_min_rot_err_deg=r["pregrasp_min_rot_err_deg"] - 2.0) for r in rows[:5]]
+    _write_results(st.eval_dir(cfg, {"name": "ours_n10_theta50"}), rows_b)
+    assert _paired_deg(cfg, {"name": "ours_n10_theta50"}, 10) == pytest.approx((-2.0, -2.0, -2.0))
+    assert rep["metrics"]["ours_n25"] is None and rep["fidelity"] is None
+    assert json.loads((cfg.out / "report.json").read_text())["metrics"]["none_n10"]["n"] == n
+
+
+def test_paired_comparison_with_none_on_shared_configurations(tmp_path, rng):
+    """The per-configuration comparison that separates policies that never succeed: differences are taken on the
+    configurations both cells evaluated, signs and counts are the cell's minus the baseline's."""
+    from umi_aug.square.report import cell_metrics, paired_vs, write_report
+
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[]")
+    base = rng.uniform(0.05, 0.2, 40)
+    closer = rng.random(40) < 0.7
+    delta = np.where(closer, -0.02, 0.01)  # metres: ours 20 mm closer on ~70 %, 10 mm farther elsewhere
+    row = lambda i, d, s: {"config": i, "success": s, "pregrasp_min_pos_err_m": d,  # noqa: E731
+                           "pregrasp_min_rot_err_deg": 10.0 + (i % 7) + 1000 * d}
+    _write_results(st.eval_dir(cfg, {"name": "none_n10"}), [row(i, base[i], False) for i in range(40)])
+    # ours evaluated configs 5..44: 35 shared with none; 44 > 39 has no partner
+    _write_results(st.eval_dir(cfg, {"name": "ours_n10"}),
+                   [row(i, base[i] + delta[i] if i < 40 else 0.0, i == 7) for i in range(5, 45)])
+    p = paired_vs(st.eval_dir(cfg, {"name": "ours_n10"}), st.eval_dir(cfg, {"name": "none_n10"}))
+    d = 1000 * delta[5:40]
+    assert p["n"] == 35 and p["closer"] == int((d < 0).sum())
+    assert p["closest_mm_diff_median"] == pytest.approx(np.median(d))
+    lo, hi = p["closest_mm_diff_ci95"]
+    assert lo <= p["closest_mm_diff_median"] <= hi
+    assert all(min(abs(v + 20.0), abs(v - 10.0)) < 1e-9 for v in (lo, hi))  # order statistics of the differences
+    assert p["closest_deg_diff_median"] == pytest.approx(np.median(d)) and p["closer_deg"] == p["closer"]
+    assert p["successes"] == 1 and p["baseline_successes"] == 0
+    assert paired_vs(st.eval_dir(cfg, {"name": "ours_n10"}), tmp_path / "nothing") is None
+    m = cell_metrics(st.eval_dir(cfg, {"name": "none_n10"}))
+    assert m["closest_pregrasp_mm_ci95"][0] <= m["closest_pregrasp_mm_median"] <= m["closest_pregrasp_mm_ci95"][1]
+    write_report(cfg, st.study_cells(cfg), {"steps": {}})
+    md = Path(cfg.report_md).read_text()
+    assert f"| ours | 10 | 35 | {np.median(d):+.0f} [" in md and f"| {p['closer']} / 35 | {np.median(d):+.1f} [" in md and "| 1 vs 0 |" in md

@@ -1,0 +1,530 @@
+"""The square study's report: ``docs/square_study.md`` (tables) and ``docs/square_study.png`` (figure).
+
+Everything is read from the study's record (``record_dir``: evaluation ``summary.json`` / ``results.jsonl``, export
+summaries, ``study_state.json`` wall times, rendering fidelity); cells not evaluated yet are listed as such, never
+filled in.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from umi_aug.io_utils import atomic_write_text
+
+__all__ = ["cell_metrics", "paired_vs", "fidelity", "report_study", "write_report", "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
+
+METRICS: tuple[str, ...] = ("success", "pregrasp_reached", "lifted", "inserted", "collision_table", "collision_peg")
+
+
+def _cell_rows(eval_dir: Path) -> dict[int, dict[str, Any]]:
+    """A cell's rollout records by configuration (empty when it has none)."""
+    from umi_aug.eval.results import ResultsLog
+
+    p = Path(eval_dir) / "results.jsonl"
+    return ResultsLog(p).read() if p.exists() else {}
+
+
+def cell_metrics(eval_dir: Path) -> dict[str, Any] | None:
+    """Counts, rates and Wilson 95 % intervals of every metric ``eval_sim`` records, plus the median closest
+    approach to the pre-grasp pose (mm / degrees; distribution-free 95 % interval of the median in mm), from a
+    cell's ``results.jsonl`` (None when there is none)."""
+    from umi_aug.eval.stats import median_interval, wilson_interval
+
+    rows = list(_cell_rows(eval_dir).values())
+    if not rows:
+        return None
+    n = len(rows)
+    out: dict[str, Any] = {"n": n}
+    for m in METRICS:
+        k = int(sum(bool(r.get(m)) for r in rows))
+        out[m] = {"count": k, "rate": k / n, "wilson95": list(wilson_interval(k, n))}
+    pos = [1000.0 * r["pregrasp_min_pos_err_m"] for r in rows if r.get("pregrasp_min_pos_err_m") is not None]
+    rot = [r["pregrasp_min_rot_err_deg"] for r in rows if r.get("pregrasp_min_rot_err_deg") is not None]
+    out["closest_pregrasp_mm_median"] = float(np.median(pos)) if pos else None
+    out["closest_pregrasp_mm_ci95"] = list(median_interval(pos)) if pos else None
+    out["closest_pregrasp_deg_median"] = float(np.median(rot)) if rot else None
+    out["nut_moved"] = int(sum((r.get("max_nut_rise_m") or 0.0) >= 0.005 for r in rows))
+    return out
+
+
+def paired_vs(eval_dir: Path, baseline_dir: Path) -> dict[str, Any] | None:
+    """A cell against a baseline cell on the configurations both evaluated (the study evaluates every cell on the
+    same ones): the per-configuration differences of the closest approach to the pre-grasp pose (cell − baseline;
+    position in mm and orientation in degrees, each the smallest error over the rollout; median and its
+    distribution-free 95 % interval), in how many configurations the cell came closer, and both success counts.
+    None when they share no configuration."""
+    from umi_aug.eval.stats import median_interval
+
+    a, b = _cell_rows(eval_dir), _cell_rows(baseline_dir)
+    key, rkey = "pregrasp_min_pos_err_m", "pregrasp_min_rot_err_deg"
+    both = sorted(c for c in set(a) & set(b)
+                  if all(r[c].get(k) is not None for r in (a, b) for k in (key, rkey)))
+    if not both:
+        return None
+    d = np.array([1000.0 * (a[c][key] - b[c][key]) for c in both])
+    dr = np.array([a[c][rkey] - b[c][rkey] for c in both])
+    return {"n": len(both), "closest_mm_diff_median": float(np.median(d)),
+            "closest_mm_diff_ci95": list(median_interval(d)), "closer": int((d < 0).sum()),
+            "closest_deg_diff_median": float(np.median(dr)), "closest_deg_diff_ci95": list(median_interval(dr)),
+            "closer_deg": int((dr < 0).sum()),
+            "successes": int(sum(bool(a[c].get("success")) for c in both)),
+            "baseline_successes": int(sum(bool(b[c].get("success")) for c in both))}
+
+
+def _pct(m: dict[str, Any], key: str) -> str:
+    v = m[key]
+    lo, hi = v["wilson95"]
+    return f"{100 * v['rate']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+
+def _closest(m: dict[str, Any]) -> str:
+    if m["closest_pregrasp_mm_median"] is None:
+        return "—"
+    lo, hi = m["closest_pregrasp_mm_ci95"]
+    return f"{m['closest_pregrasp_mm_median']:.0f} [{lo:.0f}, {hi:.0f}] / {m['closest_pregrasp_deg_median']:.1f}"
+
+
+def _paired_rows(cfg, cells) -> list[str]:
+    """Markdown rows: every evaluated cell of the main grid against ``none`` at the same data size."""
+    from umi_aug.square.study import record_eval_dir
+
+    rows = []
+    for c in cells:
+        if c["theta"] is not None or c["variant"] == "none":
+            continue
+        p = paired_vs(record_eval_dir(cfg, c), record_eval_dir(cfg, {"name": f"none_n{c['n']}"}))
+        if p is None:
+            continue
+        lo, hi = p["closest_mm_diff_ci95"]
+        rlo, rhi = p["closest_deg_diff_ci95"]
+        rows.append(f"| {c['variant']} | {c['n']} | {p['n']} | {p['closest_mm_diff_median']:+.0f} [{lo:+.0f}, "
+                    f"{hi:+.0f}] | {p['closer']} / {p['n']} | {p['closest_deg_diff_median']:+.1f} [{rlo:+.1f}, "
+                    f"{rhi:+.1f}] | {p['closer_deg']} / {p['n']} | {p['successes']} vs {p['baseline_successes']} |")
+    return rows
+
+
+def _minutes(state: dict[str, Any], step: str) -> str:
+    row = state.get("steps", {}).get(step)
+    return "—" if row is None else f"{row['seconds'] / 60.0:.1f}" + ("" if row.get("done") else " (partial)")
+
+
+def report_study(cfg) -> dict[str, Any]:
+    """The report of a study recipe from its record: :func:`write_report` over every cell of the recipe."""
+    from umi_aug.square.study import load_state, study_cells
+
+    return write_report(cfg, study_cells(cfg), load_state(cfg))
+
+
+def write_report(cfg, cells: list[dict[str, Any]], state: dict[str, Any]) -> dict[str, Any]:
+    """Write ``cfg.report_md`` and ``cfg.report_png`` (and ``<record>/report.json``); returns the JSON.
+
+    Metrics come from the record (``record_eval_dir``), export summaries from the record's copies; the rendering
+    fidelity is computed when both datasets it compares are on this machine (and kept in ``<record>/fidelity.json``),
+    otherwise read from there."""
+    from umi_aug.square.study import export_path, record_eval_dir, record_export_summary, variant_path
+
+    metrics = {c["name"]: cell_metrics(record_eval_dir(cfg, c)) for c in cells}
+    big = max(cfg.sizes)
+    ours_p = variant_path(cfg, {"name": f"ours_n{big}"})
+    gt_p = variant_path(cfg, {"name": f"gt_render_n{big}"})
+    fid_p = cfg.record / "fidelity.json"
+    fid = None
+    if ours_p.exists() and gt_p.exists():
+        fid = fidelity(ours_p, gt_p)
+        atomic_write_text(fid_p, json.dumps(fid, indent=1) + "\n")
+    elif fid_p.exists():
+        fid = json.loads(fid_p.read_text())
+    exports = {}
+    for th in [None, *sorted({c["theta"] for c in cells if c["theta"] is not None})]:
+        for sp in (record_export_summary(cfg, th), Path(str(export_path(cfg, th)) + ".summary.json")):
+            if sp.exists():
+                exports["main" if th is None else f"theta{th:g}"] = json.loads(sp.read_text())
+                break
+    report = {"recipe": _recipe_dict(cfg), "metrics": metrics, "fidelity": fid,
+              "exports": {k: {kk: v.get(kk) for kk in ("n_augmented", "n_failed", "n_resampled", "n_jobs",
+                                                      "status_counts", "timings_s")} for k, v in exports.items()},
+              "steps": state.get("steps", {})}
+    cfg.record.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(cfg.record / "report.json", json.dumps(report, indent=1) + "\n")
+    sheet = write_frames_sheet(cfg)
+    if sheet is None and frames_sheet_path(cfg).exists():
+        sheet = str(frames_sheet_path(cfg))  # made on a machine that had the datasets
+    report["frames_sheet"] = sheet
+    _write_md(cfg, cells, metrics, fid, report["exports"], state, report["frames_sheet"])
+    _write_png(cfg, cells, metrics)
+    return report
+
+
+def _recipe_dict(cfg) -> dict[str, Any]:
+    from dataclasses import asdict
+
+    d = asdict(cfg)
+    d.pop("python", None)
+    return d
+
+
+def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None) -> None:
+    from umi_aug.square.study import eval_command, train_command
+
+    L = [f"# Square study — recipe `{cfg.name}`", "",
+         "Generated by `eval/square_study.py` from the study's record (`" + str(cfg.record) + "`); a cell "
+         "without an evaluation is marked as such. Success and sub-goals: rate in % with the Wilson 95 % "
+         f"interval over the evaluated configurations (`{cfg.eval_configs_file}`, `configs={cfg.eval_configs}`).",
+         "", f"![success, pre-grasp, closest approach and its paired orientation difference vs none per data size; "
+         f"the cone sweep]({os.path.relpath(cfg.report_png, Path(cfg.report_md).parent)})",
+         "", "## Success and sub-goals", "",
+         "| variant | demos | n | success | pre-grasp reached | lifted | inserted | gripper–table | gripper–peg | "
+         "closest approach to pre-grasp: median mm [95 %] / ° | train min | eval min |",
+         "|---|---:|---:|---|---|---|---|---|---|---|---:|---:|"]
+    for c in cells:
+        if c["theta"] is not None:
+            continue
+        m = metrics[c["name"]]
+        tm, em = _minutes(state, f"train/{c['name']}"), _minutes(state, f"eval/{c['name']}")
+        if m is None:
+            L.append(f"| {c['variant']} | {c['n']} | 0 | not evaluated yet | | | | | | | {tm} | {em} |")
+            continue
+        ca = _closest(m)
+        L.append(f"| {c['variant']} | {c['n']} | {m['n']} | {_pct(m, 'success')} | {_pct(m, 'pregrasp_reached')} | "
+                 f"{_pct(m, 'lifted')} | {_pct(m, 'inserted')} | {_pct(m, 'collision_table')} | "
+                 f"{_pct(m, 'collision_peg')} | {ca} | {tm} | {em} |")
+    paired = _paired_rows(cfg, cells)
+    if paired:
+        L += ["", "## Against `none`, configuration by configuration", "",
+              "Every cell is evaluated on the same configurations, so each can be paired with `none` at the same "
+              "data size: the differences of the closest approach to the pre-grasp pose, in position and in "
+              "orientation (each the smallest error over the rollout; negative = closer than `none`; median and its "
+              "distribution-free 95 % interval), in how many configurations it came closer, and the successes of "
+              "both.", "",
+              "| variant | demos | paired configurations | Δ closest position, median mm [95 %] | closer | "
+              "Δ closest orientation, median ° [95 %] | closer | successes (cell vs none) |",
+              "|---|---:|---:|---|---:|---|---:|---|", *paired]
+    sweep = [c for c in cells if c["theta"] is not None or (c["variant"] == "ours" and c["n"] == cfg.sweep_size)]
+    if any(c["theta"] is not None for c in cells):
+        L += ["", f"## Cone-angle sweep (`ours`, {cfg.sweep_size} demos, r = {cfg.radius_m} m)", "",
+              "| θ (°) | n | success | pre-grasp reached | lifted | closest approach: median mm [95 %] / ° | "
+              f"paired vs `none_n{cfg.sweep_size}`: Δ mm [95 %] / Δ ° [95 %] |",
+              "|---:|---:|---|---|---|---|---|"]
+        from umi_aug.square.study import record_eval_dir
+
+        for c in sorted(sweep, key=lambda c: cfg.theta_deg if c["theta"] is None else c["theta"]):
+            m = metrics[c["name"]]
+            th = cfg.theta_deg if c["theta"] is None else c["theta"]
+            if m is None:
+                L.append(f"| {th:g} | 0 | not evaluated yet | | | | |")
+                continue
+            p = paired_vs(record_eval_dir(cfg, c), record_eval_dir(cfg, {"name": f"none_n{cfg.sweep_size}"}))
+            pv = "—" if p is None else (
+                f"{p['closest_mm_diff_median']:+.0f} [{p['closest_mm_diff_ci95'][0]:+.0f}, "
+                f"{p['closest_mm_diff_ci95'][1]:+.0f}] / {p['closest_deg_diff_median']:+.1f} "
+                f"[{p['closest_deg_diff_ci95'][0]:+.1f}, {p['closest_deg_diff_ci95'][1]:+.1f}]")
+            L.append(f"| {th:g} | {m['n']} | {_pct(m, 'success')} | {_pct(m, 'pregrasp_reached')} | "
+                     f"{_pct(m, 'lifted')} | {_closest(m)} | {pv} |")
+    L += ["", "## Rendering fidelity of `ours` against `gt_render` at the augmented poses", ""]
+    if fid is None:
+        L.append("Not computed yet (needs both datasets of the largest data size).")
+    else:
+        L += ["New (pre-splice) frames of the same augmented episodes, inside the fisheye image circle; `ours` = "
+              "3DGS (static scene + nut) + gripper overlay, `gt_render` = the simulator with the Panda placed by "
+              "IK.", "", "| frames | PSNR median dB | PSNR 5th pct dB | SSIM median | SSIM 5th pct |",
+              "|---:|---:|---:|---:|---:|",
+              f"| {fid['frames']} | {fid['psnr_median']:.2f} | {fid['psnr_p5']:.2f} | {fid['ssim_median']:.3f} | "
+              f"{fid['ssim_p5']:.3f} |"]
+    if sheet is not None:
+        rel = os.path.relpath(sheet, Path(cfg.report_md).parent)
+        L += ["", f"![the same augmented episodes in ours, gt_render (|difference| x3) and action_only; SPARTN's "
+                  f"perturbed frames beside the originals]({rel})"]
+    L += ["", "## Data generation", "", "| export | episodes | failed jobs | resampled attempts | attempt failures "
+          "by reason | plan s | render s | total s |", "|---|---:|---:|---:|---|---:|---:|---:|"]
+    for k, e in exports.items():
+        t = e.get("timings_s") or {}
+        reasons = ", ".join(f"{r}: {n}" for r, n in sorted((e.get("status_counts") or {}).items())) or "none"
+        L.append(f"| {k} | {e.get('n_augmented')} | {e.get('n_failed')} | {e.get('n_resampled')} | {reasons} | "
+                 f"{t.get('plan_s', 0):.0f} | {t.get('render_s', 0):.0f} | {t.get('total_s', 0):.0f} |")
+    L += ["", "## Wall time per step (minutes)", "", "| step | minutes |", "|---|---:|"]
+    for name in state.get("steps", {}):
+        L.append(f"| {name} | {_minutes(state, name)} |")
+    ex = cells[0]
+    L += ["", "## Commands", "", "```", f"python eval/square_study.py recipe={cfg.name}   # all steps, resumable", "",
+          "# the source demos (the study makes them when demos_dir lacks them):",
+          f"umi-aug square-demos --n {max(cfg.sizes)} --image-size {cfg.image_size} --workers {cfg.augment_workers} "
+          f"--out {cfg.demos_dir}", "",
+          "# what one cell runs (here " + ex["name"] + "):", " ".join(train_command(cfg, ex)[1:]),
+          " ".join(eval_command(cfg, ex)[1:]), "```", ""]
+    p = Path(cfg.report_md)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(p, "\n".join(L))
+
+
+def _legend(ax, **kw) -> None:
+    """A legend only where something was drawn (matplotlib warns otherwise)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(**kw)
+
+
+def _paired_deg(cfg, cell: dict[str, Any], n_none: int) -> tuple[float, float, float] | None:
+    """``cell`` against ``none_n{n_none}``: the median per-configuration difference of the closest orientation to
+    the pre-grasp pose (degrees, negative = closer) and its 95 % interval, or None (nothing paired)."""
+    from umi_aug.square.study import record_eval_dir
+
+    p = paired_vs(record_eval_dir(cfg, cell), record_eval_dir(cfg, {"name": f"none_n{n_none}"}))
+    if p is None:
+        return None
+    return p["closest_deg_diff_median"], *p["closest_deg_diff_ci95"]
+
+
+def _errorbar_median(ax, xs, meds_cis, **kw) -> None:
+    """Medians with their asymmetric 95 % intervals: ``meds_cis`` = ``[(median, lo, hi), ...]``."""
+    a = np.array(meds_cis, dtype=float).reshape(-1, 3)
+    ax.errorbar(xs, a[:, 0], yerr=[a[:, 0] - a[:, 1], a[:, 2] - a[:, 0]], capsize=3, **kw)
+
+
+def _write_png(cfg, cells, metrics) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from umi_aug.io_utils import atomic_path
+
+    fig, axes = plt.subplots(1, 5, figsize=(25, 4.8))
+    colour = {v: f"C{i}" for i, v in enumerate(cfg.variants)}  # one colour per variant in every panel
+    for v in cfg.variants:  # the metric that separates policies that never succeed
+        pts = sorted((c["n"], metrics[c["name"]]) for c in cells if c["variant"] == v and c["theta"] is None
+                     and metrics[c["name"]] is not None and metrics[c["name"]]["closest_pregrasp_mm_median"] is not None)
+        if pts:
+            med = np.array([m["closest_pregrasp_mm_median"] for _, m in pts])
+            ci = np.array([m["closest_pregrasp_mm_ci95"] for _, m in pts])
+            axes[2].errorbar([n for n, _ in pts], med, yerr=[med - ci[:, 0], ci[:, 1] - med], marker="o", capsize=3,
+                             label=v, color=colour[v])
+    axes[2].set_xlabel("source demos")
+    axes[2].set_ylabel("mm")
+    axes[2].set_title("closest approach to pre-grasp (median, 95 %)")
+    _legend(axes[2], fontsize=8)
+    for v in cfg.variants:  # what separates the cells: the paired orientation difference against none
+        pts = [(c["n"], _paired_deg(cfg, c, c["n"])) for c in cells
+               if c["variant"] == v and v != "none" and c["theta"] is None]
+        pts = sorted((n, p) for n, p in pts if p is not None)
+        if pts:
+            _errorbar_median(axes[3], [n for n, _ in pts], [p for _, p in pts], marker="o", label=v, color=colour[v])
+    axes[3].axhline(0.0, color="0.5", linewidth=0.8)
+    axes[3].set_xlabel("source demos")
+    axes[3].set_ylabel("°")
+    axes[3].set_title("Δ closest orientation vs none (paired, median, 95 %)")
+    _legend(axes[3], fontsize=8)
+    for ax, key, title in ((axes[0], "success", "task success"), (axes[1], "pregrasp_reached", "pre-grasp reached")):
+        for v in cfg.variants:
+            xs, ys, lo, hi = [], [], [], []
+            for c in cells:
+                m = metrics[c["name"]]
+                if c["variant"] != v or c["theta"] is not None or m is None:
+                    continue
+                r = m[key]
+                xs.append(c["n"])
+                ys.append(100 * r["rate"])
+                lo.append(100 * (r["rate"] - r["wilson95"][0]))
+                hi.append(100 * (r["wilson95"][1] - r["rate"]))
+            if xs:
+                ax.errorbar(xs, ys, yerr=[lo, hi], marker="o", capsize=3, label=v, color=colour[v])
+        ax.set_xlabel("source demos")
+        ax.set_ylabel("%")
+        ax.set_title(f"{title} (Wilson 95 %)")
+        _legend(ax, fontsize=8)
+    ax = axes[4]
+    pts = []
+    for c in cells:
+        th = cfg.theta_deg if c["theta"] is None else c["theta"]
+        if c["variant"] == "ours" and c["n"] == cfg.sweep_size and metrics[c["name"]] is not None:
+            pts.append((th, metrics[c["name"]]))
+    for key in ("success", "pregrasp_reached"):
+        pts.sort(key=lambda t: t[0])
+        if pts:
+            ax.errorbar([p[0] for p in pts], [100 * p[1][key]["rate"] for p in pts],
+                        yerr=[[100 * (p[1][key]["rate"] - p[1][key]["wilson95"][0]) for p in pts],
+                              [100 * (p[1][key]["wilson95"][1] - p[1][key]["rate"]) for p in pts]],
+                        marker="o", capsize=3, label=key)
+    ax.set_xlabel("cone half-angle θ (°)")
+    ax.set_ylabel("%")
+    ax.set_title(f"cone sweep, ours, {cfg.sweep_size} demos")
+    handles, labels = ax.get_legend_handles_labels()
+    sweep = [(cfg.theta_deg if c["theta"] is None else c["theta"], _paired_deg(cfg, c, cfg.sweep_size))
+             for c in cells if c["variant"] == "ours" and c["n"] == cfg.sweep_size]
+    sweep = sorted((th, p) for th, p in sweep if p is not None)
+    if sweep:
+        ax2 = ax.twinx()
+        _errorbar_median(ax2, [th for th, _ in sweep], [p for _, p in sweep], color="k", linestyle="--", marker="s",
+                         label="Δ closest orientation vs none (°, paired, 95 %)")
+        ax2.axhline(0.0, color="0.5", linewidth=0.8)
+        ax2.set_ylabel("Δ closest orientation vs none (°)")
+        h2, l2 = ax2.get_legend_handles_labels()
+        handles, labels = handles + h2, labels + l2
+    if handles:  # below the panel: the lines span its whole height
+        ax.legend(handles, labels, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3)
+    for a in axes[:4]:
+        a.set_xticks(sorted(cfg.sizes))
+    axes[4].set_xticks(sorted({float(t) for t in [*cfg.sweep_thetas, cfg.theta_deg]}))
+    fig.suptitle(f"square study — {cfg.name}")
+    fig.tight_layout()
+    p = Path(cfg.report_png)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def frames_sheet_path(cfg) -> Path:
+    """``<report_png stem>_frames.jpg`` beside the figure."""
+    p = Path(cfg.report_png)
+    return p.with_name(p.stem + "_frames.jpg")
+
+
+def _episode_rows(buf, rec) -> dict[tuple[int, int], np.ndarray]:
+    ends = np.asarray(buf.episode_ends)
+    out = {}
+    for e in range(len(ends)):
+        out.setdefault((int(rec["aug_source_episode"][e]), int(rec["aug_id"][e])), np.arange(ends[e - 1] if e else 0,
+                                                                                             ends[e]))
+    return out
+
+
+def frames_sheet_panels(cfg, n_episodes: int = 4) -> list[list[dict[str, Any]]] | None:
+    """The frames of :func:`write_frames_sheet`, row by row: each panel ``{"image", "title", ...}``. Augmented rows
+    carry ``key`` (source demo, aug id) and ``t``; the SPARTN row pairs each perturbed frame (``kind`` "perturbed",
+    with ``demo``, ``t``, ``episode``) with the source demo's frame ``t`` it perturbs (``kind`` "original"). None
+    when the largest data size's ours / gt_render / action_only / spartn datasets are not all there."""
+    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.square.study import variant_path
+    from umi_aug.square.variants import VARIANT_ATTR
+
+    big = max(cfg.sizes)
+    paths = {v: variant_path(cfg, {"name": f"{v}_n{big}"}) for v in ("ours", "gt_render", "action_only", "spartn")}
+    if not all(p.exists() for p in paths.values()):
+        return None
+    recs = {v: read_episode_records(p) for v, p in paths.items()}
+    bufs = {v: ReplayBuffer.open(p) for v, p in paths.items()}
+    try:
+        rows = {v: _episode_rows(bufs[v], recs[v]) for v in paths}
+        img = lambda v, r: np.asarray(bufs[v]["camera0_rgb"][int(r)])  # noqa: E731
+        gt = recs["gt_render"]
+        splice = {(int(gt["aug_source_episode"][e]), int(gt["aug_id"][e])): int(gt["aug_splice_index"][e])
+                  for e in range(len(gt["aug_id"]))}
+        shared = sorted(k for k in rows["gt_render"] if k[1] >= 0 and k in rows["ours"] and k in rows["action_only"])
+        by_demo: dict[int, tuple[int, int]] = {}
+        for k in shared:
+            by_demo.setdefault(k[0], k)
+        picks = list(by_demo.values())[:: max(1, len(by_demo) // n_episodes)][:n_episodes]
+        panels: list[list[dict[str, Any]]] = []
+        for k in picks:
+            row = []
+            for t in (0, max(1, splice[k] // 2)):
+                a, g, o = (img(v, rows[v][k][t]) for v in ("ours", "gt_render", "action_only"))
+                diff = np.clip(3.0 * np.abs(a.astype(np.float32) - g.astype(np.float32)), 0, 255).astype(np.uint8)
+                for im, name in ((a, "ours"), (g, "gt_render"), (diff, "|ours-gt| x3"), (o, "action_only")):
+                    row.append({"image": im, "title": f"demo {k[0]} aug {k[1]} t={t}: {name}", "key": k, "t": t})
+            panels.append(row)
+        # SPARTN: short episode i of a demo perturbs demo frame t = To-1 + (i // per_step)*stride (its frame To-1)
+        sp = dict(bufs["spartn"].root.attrs.get(VARIANT_ATTR, {})).get("spartn") or {}
+        To, stride, per = int(sp.get("obs_horizon", 2)), int(sp.get("stride", 2)), int(sp.get("per_step", 1))
+        rs = recs["spartn"]
+        short = [e for e in range(len(rs["aug_id"])) if int(rs["aug_id"][e]) == -2]
+        ends = np.asarray(bufs["spartn"].episode_ends)
+        row = []
+        for e in short[:: max(1, len(short) // n_episodes)][:n_episodes]:
+            d = int(rs["aug_source_episode"][e])
+            before = sum(1 for f in short if f < e and int(rs["aug_source_episode"][f]) == d)
+            t = To - 1 + stride * (before // per)
+            start = int(ends[e - 1]) if e else 0
+            row.append({"image": img("spartn", rows["spartn"][(d, -1)][t]), "title": f"demo {d} t={t}: original",
+                        "kind": "original", "demo": d, "t": t, "episode": e, "j": before % per})
+            row.append({"image": img("spartn", start + To - 1), "title": "spartn perturbed", "kind": "perturbed",
+                        "demo": d, "t": t, "episode": e, "j": before % per})
+        panels.append(row)
+        return panels
+    finally:
+        for b in bufs.values():
+            b.close()
+
+
+def write_frames_sheet(cfg, n_episodes: int = 4) -> str | None:
+    """What the policies see: the same augmented episodes' frames in ``ours`` (3DGS + overlay), ``gt_render`` (the
+    simulator) and ``action_only`` (the original demo's frame), with |ours − gt| ×3, at the episode's first frame
+    and half-way to the splice; plus SPARTN's perturbed frames beside the original frames they perturb
+    (:func:`frames_sheet_panels`). Written to :func:`frames_sheet_path`; None when the datasets are not there."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from umi_aug.io_utils import atomic_path
+
+    panels = frames_sheet_panels(cfg, n_episodes)
+    if panels is None:
+        return None
+    n_cols = max(len(r) for r in panels)
+    fig, axes = plt.subplots(len(panels), n_cols, figsize=(2 * n_cols, 2.1 * len(panels)), squeeze=False)
+    for i, row in enumerate(panels):
+        for j, p in enumerate(row):
+            axes[i, j].imshow(p["image"])
+            axes[i, j].set_title(p["title"], fontsize=7)
+    for ax in axes.ravel():
+        ax.axis("off")
+    fig.suptitle(f"square study {cfg.name}: what each variant trains on ({max(cfg.sizes)} demos)", fontsize=10)
+    fig.tight_layout()
+    out = frames_sheet_path(cfg)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=100, format="jpg", pil_kwargs={"quality": 88})
+    plt.close(fig)
+    return str(out)
+
+
+def fidelity(ours: Path, gt: Path, max_frames: int = 2000, seed: int = 0) -> dict[str, Any]:
+    """PSNR / SSIM of ``ours`` vs ``gt_render`` on the new frames of the augmented episodes they share (inside the
+    fisheye image circle): median and 5th percentile."""
+    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.data import ReplayBuffer
+
+    ra, rb = read_episode_records(ours), read_episode_records(gt)
+    with ReplayBuffer.open(ours) as A, ReplayBuffer.open(gt) as B:
+        ea, eb = np.asarray(A.episode_ends), np.asarray(B.episode_ends)
+        key = lambda r, e: (int(r["aug_source_episode"][e]), int(r["aug_id"][e]))  # noqa: E731
+        ia = {key(ra, e): e for e in range(len(ea)) if ra["aug_id"][e] >= 0}
+        rows_a, rows_b = [], []
+        for e in range(len(eb)):
+            if rb["aug_id"][e] < 0 or key(rb, e) not in ia:
+                continue
+            a = ia[key(rb, e)]
+            s = int(rb["aug_splice_index"][e])
+            sa, sb = (int(ea[a - 1]) if a else 0), (int(eb[e - 1]) if e else 0)
+            rows_a += list(range(sa, sa + s))
+            rows_b += list(range(sb, sb + s))
+        rng = np.random.default_rng(seed)
+        pick = np.sort(rng.choice(len(rows_a), size=min(max_frames, len(rows_a)), replace=False)) if rows_a else []
+        import torch
+
+        from umi_aug.camera.kb import unproject
+        from umi_aug.splat.losses import masked_psnr, masked_ssim
+        from umi_aug.square.camera import wrist_intrinsics
+
+        intr = wrist_intrinsics(int(A["camera0_rgb"].shape[1]))
+        vv, uu = np.mgrid[0:intr.height, 0:intr.width]
+        circle = torch.as_tensor(unproject(np.stack([uu, vv], axis=-1).astype(np.float64), intr)[1])
+        psnr, ssim = [], []
+        for i in pick:
+            x = torch.as_tensor(np.asarray(A["camera0_rgb"][rows_a[i]]), dtype=torch.float64) / 255.0
+            y = torch.as_tensor(np.asarray(B["camera0_rgb"][rows_b[i]]), dtype=torch.float64) / 255.0
+            psnr.append(masked_psnr(x, y, circle))
+            ssim.append(float(masked_ssim(x, y, circle)))
+    p, s = np.asarray(psnr), np.asarray(ssim)
+    # identical frames have PSNR = inf: no interpolation between ranks then (inf - inf would give NaN)
+    method = "linear" if np.isfinite(p).all() else "lower"
+    return {"frames": int(len(p)), "psnr_median": float(np.percentile(p, 50, method=method)) if len(p) else None,
+            "psnr_p5": float(np.percentile(p, 5, method=method)) if len(p) else None,
+            "ssim_median": float(np.median(s)) if len(s) else None,
+            "ssim_p5": float(np.percentile(s, 5)) if len(s) else None}
