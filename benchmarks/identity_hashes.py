@@ -29,6 +29,9 @@ import sys
 import zipfile
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from umi_aug.io_utils import atomic_write_text  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 # fields that hold wall time or the run's own output folder, not results (eval_sim's summary.json and results.jsonl)
 TIMING_KEYS = ("wall_s", "seconds", "time_s", "elapsed_s", "policy_s", "sim_s", "time_per_step_ms", "time_split",
@@ -123,7 +126,7 @@ def run_all(out: Path, square_demos: Path | None) -> dict[str, dict[str, str]]:
             _run([sys.executable, "eval/eval_sim.py", f"policy={pol}", "configs=0:3", f"out_dir={ev}", "workers=1",
                   "progress=false"], log)
         hashes[f"eval_{pol}"] = _hash_tree(ev)
-    (out / "hashes.json").write_text(json.dumps(hashes, indent=1, sort_keys=True) + "\n")
+    atomic_write_text(out / "hashes.json", json.dumps(hashes, indent=1, sort_keys=True) + "\n")
     return hashes
 
 
