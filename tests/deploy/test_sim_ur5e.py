@@ -267,8 +267,10 @@ def test_sim_checkpoint_policy_closes_the_loop(tmp_path, tiny_ckpt):
     inference takes (no age-based drop; the default rule is tested on a fake clock in test_runner.py), a 0.25 s
     policy step, and the run lasts ``max_duration`` (not a cycle count), so the waypoints of the first cycles
     have seconds of simulated motion before the halt. Nothing here compares wall-clock durations."""
+    from tests.policy.helpers import max_relative_step_m
     from umi_aug.data import ReplayBuffer
     from umi_aug.deploy.app import run_deploy
+    from umi_aug.deploy.sim_ur5e import ur5e_fk_dh
 
     cfg = _deploy_cfg(tmp_path, checkpoint=str(tiny_ckpt), dt=0.25, steps_per_inference=2, max_duration=4.0,
                       late_actions="next_slot")
@@ -278,7 +280,14 @@ def test_sim_checkpoint_policy_closes_the_loop(tmp_path, tiny_ckpt):
     # not the policy, is under test)
     cfg["robot"]["safety"].update({"workspace_min": [-0.5, -0.8, -0.05], "workspace_max": [0.5, 0.0, 0.55],
                                    "max_step_m": 0.5, "max_step_rad": np.pi, "height_threshold": -0.1})
-    cfg["robot"]["robot"].update({"max_pos_speed": 0.05, "max_rot_speed": 0.2, "max_ik_error_m": 1.0})
+    cfg["robot"]["robot"].update({"max_pos_speed": 0.02, "max_rot_speed": 0.2, "max_ik_error_m": 1.0})
+    # the premise, checked: no command the checkpoint can produce leaves the box. A command lies within the
+    # normaliser's bound of the pose it was predicted from, and the arm itself moves at most max_pos_speed for the
+    # run (+1 s for the start delay)
+    reach = max_relative_step_m(tiny_ckpt) + 0.02 * (4.0 + 1.0)
+    start = ur5e_fk_dh(np.deg2rad(cfg["robot"]["robot"]["joints_init"]), cfg["robot"]["robot"]["tcp_offset"])[:3, 3]
+    lo, hi = (np.asarray(cfg["robot"]["safety"][k]) for k in ("workspace_min", "workspace_max"))
+    assert (start - reach > lo).all() and (start + reach < hi).all(), (start, reach)
     s = run_deploy(cfg)
     assert s["policy"] == "Policy" and s["stop_reason"] == "max_duration 4.0 s reached", s
     assert s["cycles"] >= 2 and s["late_actions"]["n_hold_cycles"] == 0  # every cycle sent at least one action

@@ -14,11 +14,12 @@ from umi_aug.policy.config import TrainConfig, structured_config
 SIZE = 32
 
 
-def smooth_trajectory(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """TCP poses [n, 4, 4] moving smoothly (≈ 0.3 m, ≈ 1 rad over the episode) and gripper widths [n]."""
+def smooth_trajectory(rng: np.random.Generator, n: int, motion_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """TCP poses [n, 4, 4] moving smoothly (≈ 0.3 m, ≈ 1 rad over the episode, both times ``motion_scale``) and
+    gripper widths [n]."""
     s = np.linspace(0.0, 1.0, n)[:, None]
-    p0, v = rng.normal(0, 0.2, 3), rng.normal(0, 0.3, 3)
-    r0, w = rng.normal(0, 0.5, 3), rng.normal(0, 0.6, 3)
+    p0, v = rng.normal(0, 0.2, 3), motion_scale * rng.normal(0, 0.3, 3)
+    r0, w = rng.normal(0, 0.5, 3), motion_scale * rng.normal(0, 0.6, 3)
     pose6 = np.concatenate([p0 + s * v + 0.002 * rng.normal(size=(n, 3)), r0 + s * w], axis=1)
     grip = 0.08 * (0.5 + 0.5 * np.cos(np.pi * s[:, 0] * rng.uniform(0.5, 2.0)))
     return pos_rotvec_to_pose(pose6), grip
@@ -34,12 +35,13 @@ def images(rng: np.random.Generator, n: int, size: int = SIZE) -> np.ndarray:
 
 
 def make_dataset(path: Path, rng: np.random.Generator, n_episodes: int = 4, length: int = 40,
-                 size: int = SIZE, lengths: list[int] | None = None) -> Path:
-    """Write a UMI ``dataset.zarr.zip`` (or directory) with ``n_episodes`` smooth episodes."""
+                 size: int = SIZE, lengths: list[int] | None = None, motion_scale: float = 1.0) -> Path:
+    """Write a UMI ``dataset.zarr.zip`` (or directory) with ``n_episodes`` smooth episodes
+    (:func:`smooth_trajectory` with ``motion_scale``)."""
     buf = ReplayBuffer.create()
     for k in range(n_episodes):
         n = lengths[k] if lengths else length
-        T, g = smooth_trajectory(rng, n)
+        T, g = smooth_trajectory(rng, n, motion_scale)
         buf.add_episode(make_umi_episode(T, g, {0: images(rng, n, size)}))
     buf.save(path)
     return path
@@ -67,20 +69,36 @@ def tiny_config(dataset: Path, tmp: Path, encoder: str = "resnet", **task) -> Tr
     })
 
 
-def make_tiny_checkpoint(tmp: Path, length: int = 40, obs_down_sample_steps: int = 1) -> Path:
+def make_tiny_checkpoint(tmp: Path, length: int = 40, obs_down_sample_steps: int = 1, motion_scale: float = 1.0
+                         ) -> Path:
     """``tmp/tiny.ckpt``: a random-weight tiny policy (:func:`tiny_config`) with a normaliser fitted on a 2-episode
-    synthetic dataset of ``length`` steps, in the trained-checkpoint format — enough to run a closed loop."""
+    synthetic dataset of ``length`` steps (motion times ``motion_scale``), in the trained-checkpoint format — enough
+    to run a closed loop. The sampler clips to the normaliser's range, so a smaller ``motion_scale`` bounds how far
+    from the current pose its (random) commands can go."""
     from umi_aug.policy.checkpoint import save_checkpoint
     from umi_aug.policy.config import config_to_dict, shape_meta
     from umi_aug.policy.dataset import UmiPolicyDataset
     from umi_aug.policy.diffusion_policy import DiffusionUnetPolicy
 
-    ds = make_dataset(tmp / "d.zarr.zip", np.random.default_rng(0), n_episodes=2, length=length)
+    ds = make_dataset(tmp / "d.zarr.zip", np.random.default_rng(0), n_episodes=2, length=length,
+                      motion_scale=motion_scale)
     cfg = tiny_config(ds, tmp, obs_down_sample_steps=obs_down_sample_steps, val_ratio=0.0)
     model = DiffusionUnetPolicy(shape_meta(cfg.task), cfg.policy, warn_random_init=False)
     model.set_normalizer(UmiPolicyDataset(ds, cfg.task, split="all").fit_normalizer())
     return save_checkpoint(tmp / "tiny.ckpt", {"cfg": config_to_dict(cfg), "state_dicts": {"model": model.state_dict()},
                                                "pickles": {"global_step": 0, "epoch": 0, "epoch_done": True}})
+
+
+def max_relative_step_m(ckpt) -> float:
+    """Upper bound (m) on how far a checkpoint's relative-pose command can be from the pose it was predicted from:
+    the norm of the per-axis largest |value| its action-position normaliser maps onto [-1, 1] (the sampler clips)."""
+    from umi_aug.policy.checkpoint import load_checkpoint
+
+    sd = load_checkpoint(ckpt)["state_dicts"]["model"]
+    scale = next(v for k, v in sd.items() if k.endswith("p_action_scale")).numpy()[:3]
+    offset = next(v for k, v in sd.items() if k.endswith("p_action_offset")).numpy()[:3]
+    ends = np.stack([(-1.0 - offset) / scale, (1.0 - offset) / scale])
+    return float(np.linalg.norm(np.abs(ends).max(axis=0)))
 
 
 def with_commanded_targets(src, dst, rng, shape=None, nan_row=None):
