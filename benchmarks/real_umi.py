@@ -34,13 +34,13 @@ def train_variant(assets, variant: str, iterations: int, max_gaussians: int, eva
     """Train one initialisation variant on the episode's pre-splice frames; return its history."""
     import numpy as np
 
-    from umi_aug.augment.dataset_source import _Demo, background_shell_points, dataset_views
+    from umi_aug.augment.dataset_source import EpisodePoses, background_shell_points, dataset_views
     from umi_aug.splat.train import SplatTrainConfig, train_splat
     from umi_aug.splat.train_session import random_init_points, read_point_cloud, top_up_init_points
 
     d = assets.demos[0]
     g = assets.group_of[0]
-    views, intr = dataset_views(Path(assets.paths["dataset"]), {0: _Demo(d.name, d.T_world_cam, d.gripper_width)},
+    views, intr = dataset_views(Path(assets.paths["dataset"]), {0: EpisodePoses(d.name, d.T_world_cam, d.gripper_width)},
                                 {0: int(d.contact_index)}, assets.cfg.image_size)
     Tv = np.stack([v.T_world_cam for v in views])
     rng = np.random.default_rng([seed, 0x1A17])
@@ -131,7 +131,8 @@ def main() -> int:
         console.print(t)
     aug = None
     if args.augment > 0:
-        from umi_aug.augment.exporter import export, summary_table
+        from umi_aug.augment.export_report import summary_table
+        from umi_aug.augment.exporter import export
 
         cfg = AugmentConfig(mode="both", n_per_demo=args.augment,
                             splat=SplatStageConfig(iterations=max(args.iterations, 1), max_gaussians=args.max_gaussians))

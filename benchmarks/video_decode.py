@@ -46,7 +46,7 @@ def main() -> None:
         sh = int(round(sw * a.height / a.width))
         cases = [("every 4th", np.arange(0, a.frames, 4), (sw, sh)), ("every 2nd", np.arange(0, a.frames, 2), (sw, sh)),
                  ("every 8th", np.arange(0, a.frames, 8), (224, 224)), ("first 10%", np.arange(a.frames // 10), None)]
-        print(f"| frames kept | size | selective s | reference s | speed-up | max |diff| |")
+        print("| frames kept | size | selective s | reference s | speed-up | max |diff| |")
         print("|---|---|---:|---:|---:|---:|")
         for name, idx, size in cases:
             t = time.perf_counter()

@@ -24,7 +24,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from umi_aug.augment.exporter import summary_table
+    from umi_aug.augment.export_report import summary_table
     from umi_aug.demo.pipeline import DemoConfig, run_demo
 
     console = Console()
@@ -68,7 +68,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from umi_aug.augment.exporter import interrupted_export_message
+    from umi_aug.augment.export_store import interrupted_export_message
     from umi_aug.data import validate_replay_buffer
     from umi_aug.errors import DatasetError
 

@@ -163,12 +163,13 @@ def check_free_space(path: str | os.PathLike, need_bytes: int, what: str,
         probe = probe.parent
     free = shutil.disk_usage(probe).free
     if need_bytes > free:
-        raise error(f"{p}: not enough free disk space on {probe}: {what} needs about {_human(need_bytes)}, "
-                    f"{_human(free)} free; free some space or choose another path")
+        raise error(f"{p}: not enough free disk space on {probe}: {what} needs about {human_bytes(need_bytes)}, "
+                    f"{human_bytes(free)} free; free some space or choose another path")
     return free
 
 
-def _human(n: float) -> str:
+def human_bytes(n: float) -> str:
+    """``n`` bytes as text with a binary unit (``"3.2 GiB"``)."""
     for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
         if abs(n) < 1024 or unit == "TiB":
             return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"

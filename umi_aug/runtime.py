@@ -113,7 +113,7 @@ def restore_python_signal_handlers() -> None:
             signal.signal(signal.SIGTERM, handler)
 
 
-def make_out_dir(path: str | os.PathLike, key: str, error: type[Exception]) -> "Path":
+def make_out_dir(path: str | os.PathLike, key: str, error: type[Exception]) -> Path:
     """Create the results folder ``path`` of an app (``key`` = the setting that named it, e.g. ``out_dir``), or
     raise ``error`` in one line: ``out_dir=…: is a file, not a folder; …`` / ``…: cannot be created (…)``."""
     from pathlib import Path

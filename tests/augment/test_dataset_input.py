@@ -172,7 +172,8 @@ def test_real_demonstration_end_to_end(tmp_path):
                     "(not part of a clone); CI has it")
     from umi_aug.augment import AugmentConfig, SplatStageConfig
     from umi_aug.augment.dataset_source import DatasetInput
-    from umi_aug.augment.exporter import export, read_episode_records
+    from umi_aug.augment.export_store import read_episode_records
+    from umi_aug.augment.exporter import export
     from umi_aug.data import ReplayBuffer, validate_replay_buffer
 
     out = tmp_path / "real_aug.zarr"

@@ -57,7 +57,7 @@ def test_obstacle_gaussians_fitted_per_asset_on_first_use(aug_session, aug_asset
     fitted = sorted(p.name for p in (work / "obstacles").iterdir() if p.is_dir())
     assert len(fitted) == 1 and fitted[0].startswith("box-")  # bottle untouched
     copy = pickle.loads(pickle.dumps(assets))
-    copy._lazy = {}  # a fresh process: reads the stage's cache
+    copy.memo = {}  # a fresh process: reads the stage's cache
     assert copy.obstacle_gaussians("box").n == g.n
     assert obstacle_stage(work, cfg, "box").skipped
     with pytest.raises(AugmentError, match="no obstacle Gaussians for asset 'sphere'"):
@@ -119,7 +119,7 @@ def test_assets_pickle_light(aug_assets):
     blob = pickle.dumps(aug_assets)
     assert len(blob) < 2_000_000
     back = pickle.loads(blob)
-    assert back._lazy == {} and back.paths == aug_assets.paths
+    assert back.memo == {} and back.paths == aug_assets.paths
     d = aug_assets.demos[0]
     assert d.contact_index is not None and 0 < d.contact_index < len(d.T_world_cam)
 

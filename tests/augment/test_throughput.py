@@ -83,15 +83,15 @@ def test_overlay_originals_equal_the_frames_decoded_per_call(aug_assets):
     rng = _fresh_rng()
     d = aug_assets.augmentable[0]
     c = int(aug_assets.demos[d].contact_index)
-    aug_assets._lazy.pop("overlay_originals", None)
+    aug_assets.memo.pop("overlay_originals", None)
     few = np.array([c // 2])  # an on-the-fly sample's few frames: decoded directly, nothing cached
     assert np.array_equal(overlay_originals(aug_assets, d, few), aug_assets.original_frames(d, few))
-    assert "overlay_originals" not in aug_assets._lazy
+    assert "overlay_originals" not in aug_assets.memo
     for _ in range(3):
         src = rng.integers(0, c + 1, size=int(rng.integers(c // 2 + 1, 2 * c + 2)))
         src[:2] = (0, c)  # an export episode's sources span the pre-contact range
         assert np.array_equal(overlay_originals(aug_assets, d, src), aug_assets.original_frames(d, src))
-    assert "overlay_originals" in aug_assets._lazy
+    assert "overlay_originals" in aug_assets.memo
 
 
 def _stored_chunks(path):

@@ -4,7 +4,6 @@ after an interrupted run, determinism, and the controls (replay succeeds; hold-s
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest

@@ -1,7 +1,6 @@
 """The regression action head (``policy.action_head: regression``): it learns, its training loss is the error of
 what it predicts, it round-trips through a checkpoint into :class:`Policy`, and its settings are checked."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest

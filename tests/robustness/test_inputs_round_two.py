@@ -790,7 +790,7 @@ def test_validate_an_interrupted_export_of_the_python_api_names_the_cli_way_to_r
     interrupted, with the CLI way to resume."""
     import zarr
 
-    from umi_aug.augment.exporter import interrupted_export_message
+    from umi_aug.augment.export_store import interrupted_export_message
 
     ds = write_dataset(tmp_path / "x.zarr", lengths=(10,))
     root = zarr.open_group(str(ds), mode="r+")

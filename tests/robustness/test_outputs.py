@@ -160,7 +160,7 @@ def test_zip_output_checks_free_space_before_any_work(session, tmp_path, stop_be
         stop_before_stages.export(session, out, small_cfg(), work_dir=tmp_path / "w", progress=False)
     msg = str(e.value)
     assert msg.startswith(f"{out}: not enough free disk space on {tmp_path}: writing aug.zarr.zip (about 2 new "
-                          f"episodes + a .zarr.zip copy of the working store) needs about {io._human(need)}, "
+                          f"episodes + a .zarr.zip copy of the working store) needs about {io.human_bytes(need)}, "
                           f"48.8 KiB free"), msg
     assert not out.exists() and not Path(f"{out}.partial").exists()
     assert snapshot(session) == before

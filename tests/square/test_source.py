@@ -33,7 +33,7 @@ def square_export(tmp_path_factory, square_demo):
 
 
 def test_square_export_every_trajectory_is_feasible_for_the_panda(square_export):
-    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.augment.export_store import read_episode_records
     from umi_aug.data import ReplayBuffer
     from umi_aug.square.env import SquareEnv
     from umi_aug.square.feasibility import check_panda_path
@@ -76,7 +76,7 @@ def test_square_export_every_trajectory_is_feasible_for_the_panda(square_export)
 def test_square_export_labels_with_commanded_targets(square_export):
     """issue #29 B2: the export keeps the demos' `action` (commanded targets) for the originals; an augmented
     episode's new frames get the path's lead targets and its replayed tail the source demo's own targets."""
-    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.augment.export_store import read_episode_records
     from umi_aug.data import ReplayBuffer
     from umi_aug.geometry import pos_rotvec_to_pose
     from umi_aug.square.commands import path_command_targets

@@ -50,7 +50,7 @@ def _episode(T_cam: np.ndarray, width: np.ndarray, frames: np.ndarray) -> dict:
 @pytest.fixture()
 def fake_export(tmp_path):
     """3 source demos + 2 augmented episodes each: records as the exporter writes them."""
-    from umi_aug.augment.exporter import RECORD_CHUNK, RECORD_KEYS
+    from umi_aug.augment.export_store import RECORD_CHUNK, RECORD_KEYS
     from umi_aug.data import ReplayBuffer
 
     rng = _fresh_rng()
@@ -87,7 +87,7 @@ def fake_export(tmp_path):
 
 
 def _read(path):
-    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.augment.export_store import read_episode_records
     from umi_aug.data import ReplayBuffer
 
     with ReplayBuffer.open(path) as b:

@@ -14,8 +14,9 @@ How it is built (issue #33):
   ``obstacle_stage.py`` the obstacle Gaussians;
 - ``plan.py`` (cone start + obstacle placement → trajectory optimisation) and ``render.py`` (3DGS frames →
   gripper overlay, ``overlay.py``) — one episode, seeded per (demo, aug_id, mode);
-- ``exporter.py`` — the episode loop over any source: jobs in order, resumable, appended to a UMI replay buffer
-  (``encode.py``, ``executor.py``); ``cli.py`` the ``umi-aug augment`` command.
+- ``exporter.py`` — the episode loop over any source: jobs in order, resumable (``encode.py``, ``executor.py``),
+  appended to the output store of ``export_store.py`` (a UMI replay buffer + per-episode records), reported by
+  ``export_report.py`` (summary, table, pictures); ``cli.py`` the ``umi-aug augment`` command.
 
 Importing this package is cheap (the CLI imports it to build its parser): every name below loads its module on
 first access.
@@ -30,8 +31,8 @@ _LAZY = {
     "PlannedEpisode": "plan", "ObstacleRecord": "plan", "MODE_CODES": "plan", "episode_seed": "plan",
     "plan_episode": "plan",
     "render_episode_frames": "render",
-    "ExportSummary": "exporter", "export": "exporter", "export_jobs": "exporter", "read_episode_records": "exporter",
-    "summary_table": "exporter",
+    "export": "exporter", "export_jobs": "exporter", "ExportSummary": "export_report", "summary_table": "export_report",
+    "read_episode_records": "export_store",
     "map_ordered": "executor",
 }
 

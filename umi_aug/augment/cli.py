@@ -184,7 +184,8 @@ def source_settings_from_args(kind: str, args: argparse.Namespace):
 def cmd_augment(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from umi_aug.augment.exporter import export, summary_table
+    from umi_aug.augment.export_report import summary_table
+    from umi_aug.augment.exporter import export
     from umi_aug.augment.sources import open_source, source_kind
 
     check_args(args)  # before any work: a bad flag costs nothing

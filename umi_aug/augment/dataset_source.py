@@ -322,7 +322,7 @@ class DatasetAssets(SessionAssets):
         if g not in self.groups:
             raise AugmentError(f"{self.session_dir}: no scene group {g!r} (groups: {sorted(self.groups)[:8]})")
         b = self.build
-        gd = {e: _Demo(self.demos[e].name, self.demos[e].T_world_cam, self.demos[e].gripper_width)
+        gd = {e: EpisodePoses(self.demos[e].name, self.demos[e].T_world_cam, self.demos[e].gripper_width)
               for e in self.groups[g]}
         fps = {e: 1.0 / float(np.median(np.diff(self.demos[e].timestamps))) if len(gd[e].gripper_width) > 1
                else 59.94 for e in gd}
@@ -384,13 +384,16 @@ def _read_frames(dataset: Path, episode: int, idx: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class _Demo:  # what the group's stages read of an episode (stages.contact_stage among them)
+class EpisodePoses:
+    """What a scene group's stages read of one episode (``stages.contact_stage`` among them): its name, camera
+    poses ``T_world_cam`` [N, 4, 4] (m, the group's frame) and gripper widths [N] (m)."""
+
     name: str
     T_world_cam: np.ndarray
     gripper_width: np.ndarray
 
 
-def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict[int, _Demo], fps: dict[int, float],
+def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict[int, EpisodePoses], fps: dict[int, float],
                  cfg: AugmentConfig, inp: DatasetInput) -> StageResult:
     """Known-pose triangulation + cloud + SDF + contacts of one group (outputs as the session reconstruction's)."""
     import cv2
@@ -450,7 +453,7 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
     return run_stage("scene", work, conf, {"dataset": fp, "episodes": ",".join(map(str, eps))}, fn)
 
 
-def _stage_sdf(work: Path, dataset: Path, scene: StageResult, eps: list[int], demos: dict[int, _Demo],
+def _stage_sdf(work: Path, dataset: Path, scene: StageResult, eps: list[int], demos: dict[int, EpisodePoses],
                fps: dict[int, float], cfg: AugmentConfig) -> StageResult:
     """SDF of one group over the reachable region + contact per episode (``recon_report.json`` as the session
     reconstruction writes it).
@@ -513,7 +516,7 @@ def _stage_sdf(work: Path, dataset: Path, scene: StageResult, eps: list[int], de
     return run_stage("sdf", work, {"recon": rc, "crop": SDF_CROP_M}, {"scene": scene.key}, fn)
 
 
-def dataset_views(dataset: Path, demos: dict[int, _Demo], splice: dict[int, int], image_size: int,
+def dataset_views(dataset: Path, demos: dict[int, EpisodePoses], splice: dict[int, int], image_size: int,
                   stride: int = 1, mask_finger: bool = True):
     """3DGS views of a group: each episode's frames ``0..splice`` (every ``stride``-th) at the policy intrinsics,
     loss mask = valid image circle minus UMI's gripper/mirror(/finger) polygons, and not the black pixels UMI's
@@ -533,7 +536,7 @@ def dataset_views(dataset: Path, demos: dict[int, _Demo], splice: dict[int, int]
     return views, intr
 
 
-def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, _Demo], scene: StageResult,
+def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, EpisodePoses], scene: StageResult,
                  contact: StageResult, cfg: AugmentConfig, inp: DatasetInput, progress: bool) -> StageResult:
     from umi_aug.splat import write_ply
     from umi_aug.splat.train import SplatTrainConfig, train_splat
@@ -582,7 +585,7 @@ def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, _Demo], sc
     return run_stage("splat", work, conf, {"dataset": fp, "scene": scene.key, "contact": contact.key}, fn)
 
 
-def _build_group(dataset: Path, work: Path, fp: str, g: str, gd: dict[int, _Demo], fps: dict[int, float],
+def _build_group(dataset: Path, work: Path, fp: str, g: str, gd: dict[int, EpisodePoses], fps: dict[int, float],
                  cfg: AugmentConfig, inp: DatasetInput, renders: bool, progress: bool, extra_paths: dict[str, str]
                  ) -> dict[str, Any]:
     """Build (or find cached under ``<work>/scenes/<g>/``) one group's stages: ``{paths, views, mask, mask_info,

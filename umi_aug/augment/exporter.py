@@ -27,68 +27,36 @@ import logging
 import os
 import pickle
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from umi_aug.augment.config import AugmentConfig, config_hash, obstacle_key
-from umi_aug.augment.encode import FrameEncoder, can_encode_ahead, write_encoded
+from umi_aug.augment.encode import FrameEncoder, can_encode_ahead
 from umi_aug.augment.executor import map_ordered, usable_cores
+from umi_aug.augment.export_report import ExportSummary, export_pictures
+from umi_aug.augment.export_store import (ATTR, IMAGE_KEY, RECORD_KEYS, add_records, append_episode,
+                                          count_episodes, create_store, export_progress, not_this_runs_output,
+                                          open_export_store, raw_copy_ok, stored_key, working_path)
 from umi_aug.augment.plan import (MODE_CODES, PlannedEpisode, episode_seed, first_attempt_obstacle_assets,
                                   try_plan_episode)
 from umi_aug.augment.render import render_episode_frames
 from umi_aug.augment.session_assets import SessionAssets
 from umi_aug.augment.sources import InputSource, open_source
 from umi_aug.augment.stages import OVERLAY_MASK_RULE
+from umi_aug.data import ReplayBuffer
+from umi_aug.data.store import close_store, open_store
 from umi_aug.errors import AugmentError, UmiAugError
-from umi_aug.io_utils import (PathLock, atomic_path, atomic_write_text, check_free_space, is_inside,
+from umi_aug.io_utils import (PathLock, atomic_path, atomic_write_text, check_free_space, human_bytes, is_inside,
                                remove_tree_atomically, tree_size)
 
-__all__ = ["ExportSummary", "ExportProgress", "FAST_PATHS", "append_episode", "export", "export_jobs",
-           "export_progress", "interrupted_export_message", "RECORD_KEYS", "read_episode_records", "summary_table"]
+__all__ = ["FAST_PATHS", "export", "export_jobs"]
 
 log = logging.getLogger(__name__)
 
-#: Per-episode record arrays in ``meta/`` (name → dtype).
-RECORD_KEYS: dict[str, str] = {"aug_source_episode": "int64", "aug_mode": "int8", "aug_id": "int64",
-                               "aug_seed": "int64", "aug_attempts": "int16", "aug_splice_index": "int64",
-                               "aug_job": "int64"}
-ATTR = "umi_aug_export"
-RECORD_CHUNK = 1024
 #: Speed-ups of :func:`export` (issue #17), each with its reference path kept (``fast_paths=()``).
 FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead", "obstacle_tiles")
-
-
-@dataclass
-class ExportSummary:
-    """What :func:`export` did (also written as ``<out>.summary.json``).
-
-    Attributes:
-        out_path / work_dir: paths; n_original / n_augmented: episodes in the dataset; n_failed: jobs that
-        failed after the retry budget; n_resampled: extra attempts over all emitted episodes;
-        n_jobs: augmented jobs; resumed_jobs: jobs already done when this run started;
-        status_counts: reasons of failed attempts by status; stages: per stage seconds / skipped;
-        timings_s: scene (plain dataset: groups built lazily) / plan / render / write / pictures / total;
-        frames_rendered: new frames rendered in this run;
-        episodes_per_s: jobs finished per second in this run; pictures: contact sheet + trajectory plots.
-    """
-
-    out_path: str
-    work_dir: str
-    n_original: int
-    n_augmented: int
-    n_failed: int
-    n_resampled: int
-    n_jobs: int
-    resumed_jobs: int
-    status_counts: dict = field(default_factory=dict)
-    stages: dict = field(default_factory=dict)
-    timings_s: dict = field(default_factory=dict)
-    frames_rendered: int = 0
-    episodes_per_s: float = 0.0
-    pictures: dict = field(default_factory=dict)
-    failures: list = field(default_factory=list)
 
 
 def export_jobs(assets: SessionAssets) -> list[tuple[int, str, int]]:
@@ -107,225 +75,6 @@ def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
                        # the codec's effort changes the stored bytes; None (the library default) keeps the key of
                        # exports made before the setting existed
                        *(() if cfg.jpegxl_effort is None else (("jpegxl_effort", cfg.jpegxl_effort),)))
-
-
-def _working_path(out: Path) -> Path:
-    return out.with_name(out.name + ".partial") if out.name.endswith(".zip") else out
-
-
-def _add_records(buf, rows: dict[str, int]) -> None:
-    meta = buf.meta
-    for k, dt in RECORD_KEYS.items():
-        a = meta[k]
-        a.resize(a.shape[0] + 1)
-        a[-1] = np.asarray(rows[k], dtype=dt)
-
-
-def _create_store(path: Path, assets: SessionAssets, key: str, n_jobs: int) -> None:
-    """A new working store: the originals copied as stored + their records, in one atomic directory write."""
-    from umi_aug.data import ReplayBuffer
-
-    cfg = assets.cfg
-    if cfg.include_original:
-        buf = ReplayBuffer.open(assets.paths["dataset"], mode="a", load_to_memory=True)
-    else:  # empty arrays with the session dataset's layout (chunks, codecs), so chunks can be copied raw
-        buf = ReplayBuffer.create()
-        src = assets.original
-        for k in src.keys():
-            a = src[k]
-            buf.data.zeros(k, shape=(0,) + a.shape[1:], chunks=a.chunks, dtype=a.dtype, compressor=a.compressor,
-                           filters=a.filters)
-    E = buf.n_episodes
-    if cfg.include_original and "camera0_rgb" in buf and tuple(buf["camera0_rgb"].shape[1:3]) != (cfg.image_size,) * 2:
-        raise AugmentError(f"{assets.paths['dataset']}: key 'data/camera0_rgb' frames are "
-                           f"{tuple(buf['camera0_rgb'].shape[1:3])}, image_size = {cfg.image_size}")
-    contact = {d.index: d.contact_index for d in assets.demos}
-    init = {"aug_source_episode": np.arange(E), "aug_mode": np.zeros(E), "aug_id": np.full(E, -1),
-            "aug_seed": np.zeros(E), "aug_attempts": np.ones(E),
-            "aug_splice_index": np.array([-1 if contact.get(i) is None else contact[i] for i in range(E)]),
-            "aug_job": np.full(E, -1)}
-    for k, dt in RECORD_KEYS.items():
-        buf.meta.array(k, np.asarray(init[k], dtype=dt), chunks=(RECORD_CHUNK,), compressor=None)
-    _set_umi_image_codec(buf, cfg.jpegxl_effort)
-    buf.root.attrs[ATTR] = {"key": key, "n_jobs": n_jobs, "n_original": E, "last_job_done": -1, "failures": [],
-                            "modes": MODE_CODES, "format": "umi_aug export v1: meta/aug_* per episode"}
-    buf.save(path)
-
-
-#: JPEG-XL codec parameters that only steer the encoder: chunks written with any value decode alike.
-ENCODER_ONLY_JPEGXL_KEYS: frozenset[str] = frozenset({"effort"})
-#: Frames read at once when an image array of another codec is re-encoded with UMI's JPEG-XL (~38 MB at 224²).
-REENCODE_BLOCK = 256
-
-
-def _set_umi_image_codec(buf, effort: int | None) -> None:
-    """Make every ``camera*_rgb`` array of ``buf`` store UMI's exact 12-key JPEG-XL codec config (``id`` + the 11
-    parameters of UMI's ``JpegXl``; :func:`umi_aug.data.codecs.umi_image_codec_from`), whatever the source wrote:
-
-    * a JPEG-XL config with other keys (newer imagecodecs' ``bitspersample``, ``squeeze``, ...) is rewritten in the
-      array's ``.zarray`` (the stored chunks decode alike: those keys do not change the bitstream), with ``effort``
-      (the encoder setting of every frame written from now on) when given;
-    * an array of another codec (Blosc, uncompressed, ...) is re-encoded with UMI's ``JpegXl(level=99)``, in blocks
-      of :data:`REENCODE_BLOCK` frames, one frame per chunk (lossy, as UMI's own images).
-
-    UMI's reader rebuilds the codec as ``JpegXl(**config)``, so any key beyond its 11 parameters fails there."""
-    from zarr.util import json_dumps
-
-    from umi_aug.data import schema
-    from umi_aug.data.codecs import JPEGXL_CODEC_ID, umi_image_codec_from
-
-    changed = False
-    for key in [k for k in buf.keys() if schema.is_image_key(k)]:
-        arr = buf[key]
-        zkey = f"{arr.path}/.zarray"
-        meta = json.loads(arr.store[zkey])
-        stored = meta.get("compressor")
-        codec = umi_image_codec_from(stored, effort)
-        if stored is not None and stored.get("id") == JPEGXL_CODEC_ID and not meta.get("filters"):
-            if stored != codec.get_config():
-                meta["compressor"] = codec.get_config()
-                arr.store[zkey] = json_dumps(meta)
-                changed = True
-            continue
-        log.info("export: %s frames stored with codec %s are re-encoded with UMI's JPEG-XL", key,
-                 None if stored is None else stored.get("id"))
-        tmp = f"{key}.umi_aug_reencode"
-        dst = buf.data.zeros(tmp, shape=arr.shape, chunks=(1,) + arr.shape[1:], dtype=arr.dtype, compressor=codec)
-        for s in range(0, arr.shape[0], REENCODE_BLOCK):
-            dst[s:s + REENCODE_BLOCK] = arr[s:s + REENCODE_BLOCK]
-        del buf.data[key]
-        buf.data.move(tmp, key)
-        changed = True
-    if changed:
-        buf._invalidate()
-
-
-def _open_store(path: Path, key: str):
-    from umi_aug.data import ReplayBuffer
-
-    buf = ReplayBuffer.open(path, mode="a", repair=True)
-    attrs = dict(buf.root.attrs.get(ATTR, {}))
-    if attrs.get("key") != key:
-        buf.close()
-        raise AugmentError(_not_this_runs_output(path, attrs.get("key"), key))
-    E = buf.n_episodes
-    for k in RECORD_KEYS:
-        a = buf.meta[k]
-        if a.shape[0] < E:
-            raise AugmentError(f"{path}: key 'meta/{k}' has {a.shape[0]} rows for {E} episodes (records are "
-                               f"written before the episode; the store was modified by something else)")
-        if a.shape[0] > E:
-            log.warning("%s: dropping %d record(s) of an interrupted append from meta/%s", path, a.shape[0] - E, k)
-            a.resize(E)
-    return buf, attrs
-
-
-def _not_this_runs_output(path: Path, stored: str | None, key: str) -> str:
-    """The message for an existing ``--out`` (or its working store) that this run cannot resume: umi-aug's own
-    export of another configuration (``--restart`` replaces it), or no umi-aug export at all (never touched)."""
-    if stored is None:
-        return (f"{path}: exists and is not an umi-aug export (no attribute '{ATTR}'; a dataset of yours?); "
-                f"umi-aug never writes into it, and --restart deletes only umi-aug's own outputs: choose another "
-                f"--out")
-    return (f"{path}: an export of another configuration/session (attribute '{ATTR}.key' = {stored!r}, this run "
-            f"{key!r}); rerun with --restart to replace it (it is umi-aug's own output), or choose another --out")
-
-
-def _stored_key(path: Path) -> str | None:
-    """The run key stored in an export (directory store read raw: it may hold an interrupted append)."""
-    from umi_aug.data.store import close_store, open_store
-
-    try:
-        store, root = open_store(path, mode="r")
-    except UmiAugError as exc:
-        raise AugmentError(f"{path}: exists but is not a readable zarr store ({exc}); delete it or choose another "
-                           f"--out") from exc
-    try:
-        return dict(root.attrs.get(ATTR, {})).get("key")
-    except (KeyError, ValueError, TypeError):
-        return None
-    finally:
-        close_store(store)
-
-
-@dataclass(frozen=True)
-class ExportProgress:
-    """How far an umi-aug export got, from its own records (:func:`export_progress`).
-
-    Attributes:
-        n_episodes: committed episodes (``meta/episode_ends``); n_original: the originals among the planned;
-        n_jobs: augmentation jobs planned (one episode each when it does not fail); jobs_done: jobs finished (an
-        episode committed or a failure recorded); n_failed: failed jobs; command / cwd: the command line that wrote
-        it and its working folder (None: an export made before they were recorded, or through the Python API).
-    """
-
-    n_episodes: int
-    n_original: int
-    n_jobs: int
-    jobs_done: int
-    n_failed: int
-    command: tuple[str, ...] | None = None
-    cwd: str | None = None
-
-    @property
-    def planned(self) -> int:
-        """Episodes the export holds when every job succeeds."""
-        return self.n_original + self.n_jobs
-
-    @property
-    def complete(self) -> bool:
-        return self.jobs_done >= self.n_jobs
-
-
-def export_progress(path: str | os.PathLike) -> ExportProgress | None:
-    """The :class:`ExportProgress` of an umi-aug export (a zarr directory or ``.zarr.zip``, read raw and read-only:
-    it may hold an interrupted append), or None when ``path`` is not one (no attribute ``umi_aug_export``, or not
-    a readable store)."""
-    from umi_aug.data.store import close_store, open_store
-
-    try:
-        store, root = open_store(Path(path), mode="r")
-    except UmiAugError:
-        return None
-    try:
-        attrs = dict(root.attrs.get(ATTR, {}))
-        if "n_jobs" not in attrs:
-            return None
-        E = int(root["meta/episode_ends"].shape[0])
-        recs = root["meta/aug_job"][:E] if "aug_job" in root["meta"] else np.zeros(0, np.int64)
-        done = max(int(attrs.get("last_job_done", -1)), int(recs.max()) if len(recs) else -1) + 1
-        cmd = attrs.get("command") or {}
-        return ExportProgress(n_episodes=E, n_original=int(attrs.get("n_original", 0)), n_jobs=int(attrs["n_jobs"]),
-                              jobs_done=done, n_failed=len(attrs.get("failures", [])),
-                              command=tuple(cmd["argv"]) if cmd.get("argv") else None, cwd=cmd.get("cwd"))
-    except (KeyError, ValueError, TypeError):
-        return None
-    finally:
-        close_store(store)
-
-
-def interrupted_export_message(path: str | os.PathLike, shown: str | os.PathLike | None = None) -> str | None:
-    """The one line ``umi-aug validate`` gives for an interrupted umi-aug export at ``path`` (episodes written vs
-    planned, from the export's own records, and the command that resumes it), or None (complete, or not an
-    export). ``shown``: the path the user passed, when that is not ``path`` (a ``.zarr.zip`` not yet written,
-    whose working store ``<out>.partial`` is ``path``)."""
-    import shlex
-
-    st = export_progress(path)
-    if st is None or st.complete:
-        return None
-    head = (f"{shown}: not written yet — the export was interrupted; its working store {path} holds"
-            if shown is not None else f"{path}: an interrupted umi-aug export, not complete: it holds")
-    failed = f", {st.n_failed} failed" if st.n_failed else ""
-    if st.command:
-        where = f" (run in {st.cwd})" if st.cwd and Path(st.cwd) != Path.cwd() else ""
-        how = f"resume it with `{shlex.join(st.command)}`{where}"
-    else:
-        how = ("resume it by rerunning the `umi-aug augment` command that wrote it (the same input, --out and flags, "
-               "without --restart)")
-    return (f"{head} {st.n_episodes} of the {st.planned} planned episodes ({st.n_original} original + "
-            f"{st.n_episodes - st.n_original} augmented; {st.jobs_done} of {st.n_jobs} augmentation jobs "
-            f"finished{failed}); {how}: it continues after the last finished job")
 
 
 @dataclass
@@ -397,75 +146,6 @@ def _save_planned(path: Path, planned: PlannedEpisode) -> None:
         raise
 
 
-IMAGE_KEY = "camera0_rgb"
-
-
-def _raw_copy_ok(dst_arr, src_arr) -> bool:
-    """Chunks of ``src_arr`` can be copied byte for byte into ``dst_arr`` (one frame per chunk, the same codec up
-    to encoder-only settings)."""
-    return (dst_arr.chunks == src_arr.chunks and dst_arr.chunks[0] == 1 and dst_arr.dtype == src_arr.dtype
-            and dst_arr.shape[1:] == src_arr.shape[1:] and dst_arr.filters == src_arr.filters
-            and dst_arr.compressor is not None and src_arr.compressor is not None
-            and _decoder_config(dst_arr.compressor) == _decoder_config(src_arr.compressor))
-
-
-def _decoder_config(codec) -> dict:
-    """A codec's config without the encoder-only keys (JPEG-XL ``effort``)."""
-    from umi_aug.data.codecs import JPEGXL_CODEC_ID
-
-    cfg = dict(codec.get_config())
-    if cfg.get("id") == JPEGXL_CODEC_ID:
-        for k in ENCODER_ONLY_JPEGXL_KEYS:
-            cfg.pop(k, None)
-    return cfg
-
-
-def append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_arr, src_rows: np.ndarray,
-                   encoded: list | None = None) -> float:
-    """Append one episode like :meth:`ReplayBuffer.add_episode` (data first, ``meta/episode_ends`` LAST): the
-    ``new_frames`` [n, S, S, 3] are encoded, the tail frames are the source array's rows ``src_rows`` copied as
-    stored (compressed chunks, no decode/re-encode; a chunk missing in the source is the fill value there and is
-    left missing here). ``encoded``: the new frames' chunks already encoded (futures of
-    :meth:`umi_aug.augment.encode.FrameEncoder.submit`; the same bytes) — otherwise zarr encodes them here
-    (the reference path). Returns the seconds spent encoding on the encoder's threads (0 on the reference path)."""
-    keys = sorted([*lowdim, IMAGE_KEY])
-    if keys != buf.keys():
-        raise AugmentError(f"{buf.name}: episode keys {keys} differ from the dataset's {buf.keys()}")
-    n, m = len(new_frames), len(src_rows)
-    L = n + m
-    for k, v in lowdim.items():
-        arr = buf[k]
-        v = np.asarray(v)
-        if len(v) != L or v.shape[1:] != arr.shape[1:] or v.dtype != arr.dtype:
-            raise AugmentError(f"{buf.name}: key 'data/{k}': expected ({L}, {arr.shape[1:]}) {arr.dtype}, got "
-                               f"{v.shape} {v.dtype}")
-        if v.dtype.kind == "f" and not np.isfinite(v).all():
-            raise AugmentError(f"{buf.name}: key 'data/{k}' of the new episode holds NaN/Inf")
-    old = buf.n_steps
-    for k, v in lowdim.items():
-        arr = buf[k]
-        arr.resize((old + L,) + arr.shape[1:])
-        arr[old:old + L] = v
-    img = buf[IMAGE_KEY]
-    img.resize((old + L,) + img.shape[1:])
-    enc_s = 0.0
-    if n and encoded is not None:
-        enc_s = write_encoded(img, old, encoded)
-    elif n:
-        img[old:old + n] = new_frames
-    dst_store, src_store = img.store, src_arr.store
-    for i, r in enumerate(np.asarray(src_rows, dtype=np.int64)):
-        skey = src_arr._chunk_key((int(r),) + (0,) * (src_arr.ndim - 1))
-        dkey = img._chunk_key((old + n + i,) + (0,) * (img.ndim - 1))
-        try:
-            dst_store[dkey] = src_store[skey]
-        except KeyError:
-            if dkey in dst_store:
-                del dst_store[dkey]
-    buf._commit_episode_end(old + L)
-    return enc_s
-
-
 def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: AugmentConfig, *,
            resume: bool = True, work_dir: str | os.PathLike | None = None, progress: bool = True,
            pictures: bool = True, dataset_input=None, fast_paths=None, encode_threads: int | None = None,
@@ -525,7 +205,7 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
     except OSError as exc:
         if exc.errno not in DISK_FULL_ERRNOS:
             raise
-        raise AugmentError(_disk_full_message(exc, writing, _working_path(out))) from exc
+        raise AugmentError(_disk_full_message(exc, writing, working_path(out))) from exc
     finally:
         if not work_existed:  # the lock made it: a run stopped by an up-front check leaves no empty <out>.work/
             with contextlib.suppress(OSError):
@@ -546,7 +226,7 @@ def _disk_full_message(exc: OSError, writing: dict, wpath: Path) -> str:
     while not probe.exists() and probe != probe.parent:
         probe = probe.parent
     try:
-        free = f"{_human_bytes(shutil.disk_usage(probe).free)} free on it"
+        free = f"{human_bytes(shutil.disk_usage(probe).free)} free on it"
     except OSError:
         free = "free space unknown"
     st = export_progress(wpath)
@@ -555,12 +235,6 @@ def _disk_full_message(exc: OSError, writing: dict, wpath: Path) -> str:
     return (f"{path}: disk full while writing {writing['what']} ({exc.strerror or 'No space left on device'}; "
             f"{free}); {kept}: free some space (or choose --out/--work on another disk) and rerun the same command "
             f"to resume")
-
-
-def _human_bytes(n: float) -> str:
-    from umi_aug.io_utils import _human
-
-    return _human(n)
 
 
 def _fast_paths(fast_paths) -> frozenset:
@@ -575,7 +249,7 @@ def _check_paths(src: Path, reads: tuple[Path, ...], out: Path, work: Path) -> N
     """Refuse an output / work dir that is, contains or lies inside the input ``src`` — inside a folder input, in
     what the source ``reads`` (:meth:`InputSource.reads`: a session's inputs, all of a zarr directory) — nothing
     is touched."""
-    for what, p in (("--out", out), ("--out", _working_path(out)), ("--work", work)):
+    for what, p in (("--out", out), ("--out", working_path(out)), ("--work", work)):
         if is_inside(src, p) or (src.is_dir() and is_inside(p, src) and any(is_inside(p, r) for r in reads)):
             raise AugmentError(f"{what} {p}: is, contains or lies inside the input {src}; umi-aug never writes "
                                f"into or deletes its inputs: choose another {what}")
@@ -584,8 +258,6 @@ def _check_paths(src: Path, reads: tuple[Path, ...], out: Path, work: Path) -> N
 def _is_own_export(p: Path, wpath: Path) -> bool:
     """True when ``p`` is an umi-aug export (its root attribute ``umi_aug_export``), or umi-aug's working store
     ``<out>.partial`` holding nothing but zarr groups (a half-deleted one)."""
-    from umi_aug.data.store import close_store, open_store
-
     try:
         store, root = open_store(p, mode="r")
     except UmiAugError:
@@ -642,23 +314,23 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
     src.check(cfg.image_size)  # every input, before anything is removed or computed: one error naming the key
     key = _run_key(cfg, src.fingerprint())
     src_ds = Path(src.dataset)
-    n_src = _n_episodes(src_ds)
+    n_src = count_episodes(src_ds)
     n_aug = src.n_augment(n_src)
-    wpath = _working_path(out)
+    wpath = working_path(out)
     _remove_leftover_temporaries(out)
     if not resume:
         _discard_previous(out, wpath)
     finished = False
     if out.name.endswith(".zip") and out.exists():  # checked before any stage runs: a mismatch costs nothing
-        stored = _stored_key(out)
+        stored = stored_key(out)
         if stored != key:
-            raise AugmentError(_not_this_runs_output(out, stored, key))
+            raise AugmentError(not_this_runs_output(out, stored, key))
         finished = True
         if wpath.exists():  # killed during the final clean-up: the output is complete, the working copy is left
             log.warning("export: %s is complete; removing the leftover working store %s", out, wpath)
             remove_tree_atomically(wpath)
-    elif wpath.exists() and _stored_key(wpath) != key:
-        raise AugmentError(_not_this_runs_output(wpath, _stored_key(wpath), key))
+    elif wpath.exists() and stored_key(wpath) != key:
+        raise AugmentError(not_this_runs_output(wpath, stored_key(wpath), key))
     if not finished:  # before minutes of compute: the output (and a .zip's working copy) must fit
         need = _expected_bytes(src_ds, n_aug * len(cfg.modes) * cfg.n_per_demo, n_src, cfg.include_original)
         need = need * (2 if out.name.endswith(".zip") else 1) - tree_size(wpath)
@@ -675,8 +347,8 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
     writing = writing if writing is not None else {}
     writing.update(path=wpath, what="the export" if wpath == out else "the export's working store")
     if not wpath.exists():
-        _create_store(wpath, assets, key, len(jobs))
-    buf, attrs = _open_store(wpath, key)
+        create_store(wpath, assets, key, len(jobs))
+    buf, attrs = open_export_store(wpath, key)
     if command is not None and attrs.get("command", {}).get("argv") != list(command):
         # `umi-aug validate` names it as the command that resumes an interrupted export
         attrs["command"] = {"argv": list(command), "cwd": os.getcwd()}
@@ -693,7 +365,7 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
                      buf.n_episodes)
         failures = list(attrs.get("failures", []))
         src_img = assets.original[IMAGE_KEY]
-        raw_ok = IMAGE_KEY in buf and _raw_copy_ok(buf[IMAGE_KEY], src_img)
+        raw_ok = IMAGE_KEY in buf and raw_copy_ok(buf[IMAGE_KEY], src_img)
         if not raw_ok:
             log.info("export: replayed frames are re-encoded (the output's image codec/chunks differ from the "
                      "session dataset's)")
@@ -722,7 +394,7 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
                 if cfg.include_original and int(buf.meta["aug_splice_index"][d]) < 0:  # group built lazily
                     buf.meta["aug_splice_index"][d] = int(planned.episode.source_contact_index)
                 t0 = time.perf_counter()
-                _add_records(buf, {"aug_source_episode": d, "aug_mode": MODE_CODES[m], "aug_id": a,
+                add_records(buf, {"aug_source_episode": d, "aug_mode": MODE_CODES[m], "aug_id": a,
                                    "aug_seed": planned.seed, "aug_attempts": planned.attempts,
                                    "aug_splice_index": planned.splice_index, "aug_job": j})
                 ep = planned.episode
@@ -781,41 +453,26 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
                    loop_s=time.perf_counter() - t_start)
 
 
-def _n_episodes(path: Path) -> int:
-    """Episodes of a UMI dataset (``meta/episode_ends``, read raw)."""
-    from umi_aug.data.store import close_store, open_store
-
-    store, root = open_store(path, mode="r")
-    try:
-        return int(root["meta/episode_ends"].shape[0])
-    except (KeyError, ValueError) as exc:
-        raise AugmentError(f"{path}: no readable key 'meta/episode_ends' ({exc})") from exc
-    finally:
-        close_store(store)
-
-
 def _status_of(reason: str) -> str:
     """``"attempt 3: collision: ..."`` → ``"collision"``."""
     parts = reason.split(":")
     return parts[1].strip() if len(parts) > 1 else reason
 
 
-def read_episode_records(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """The per-episode records (``meta/aug_*``, each ``[E]``) of an exported dataset."""
-    from umi_aug.data import ReplayBuffer
-
-    with ReplayBuffer.open(path) as buf:
-        missing = [k for k in RECORD_KEYS if k not in set(buf.meta.array_keys())]
-        if missing:
-            raise AugmentError(f"{path}: no per-episode records {missing} in meta/ (not an umi-aug export)")
-        return {k: np.asarray(buf.meta[k][:]) for k in RECORD_KEYS}
+def _planned_episodes(assets: SessionAssets, key: str, jobs) -> dict[int, list]:
+    """Demo index → the planned trajectories of its finished jobs (from the plan cache), for the pictures."""
+    out: dict[int, list] = {}
+    for job in jobs:
+        p = _plan_cache_path(assets, job, key)
+        pl = _load_planned(p) if p.exists() else None
+        if pl is not None:
+            out.setdefault(job[0], []).append(pl.episode)
+    return out
 
 
 def _finish(out: Path, work: Path, assets: SessionAssets, key: str, jobs, resumed: int, t_start: float,
             timings: dict, frames_rendered: int, pictures: bool, read_from: Path, loop_s: float = 0.0
             ) -> ExportSummary:
-    from umi_aug.data import ReplayBuffer
-
     with ReplayBuffer.open(read_from) as buf:
         attrs = dict(buf.root.attrs.get(ATTR, {}))
         rec = {k: np.asarray(buf.meta[k][:]) for k in RECORD_KEYS}
@@ -826,7 +483,7 @@ def _finish(out: Path, work: Path, assets: SessionAssets, key: str, jobs, resume
         pics = {}
         t0 = time.perf_counter()
         if pictures:
-            pics = _pictures(out, assets, buf, rec, key, jobs)
+            pics = export_pictures(out, assets, buf, rec, _planned_episodes(assets, key, jobs))
         timings["pictures_s"] = time.perf_counter() - t0
     done_now = len(jobs) - resumed
     total = time.perf_counter() - t_start
@@ -840,75 +497,3 @@ def _finish(out: Path, work: Path, assets: SessionAssets, key: str, jobs, resume
         episodes_per_s=round(done_now / loop_s, 4) if loop_s > 0 else 0.0, pictures=pics, failures=failures)
     atomic_write_text(out.with_name(out.name + ".summary.json"), json.dumps(asdict(summary), indent=2) + "\n")
     return summary
-
-
-class _EpisodeFrames:
-    """One episode's frames of a zarr image array, decoded on access: a contact sheet shows 7 of an episode's
-    hundreds of frames (decoding them all took most of a real episode's picture time)."""
-
-    def __init__(self, arr, sl: slice) -> None:
-        self.arr, self.start, self.n = arr, int(sl.start), int(sl.stop - sl.start)
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __getitem__(self, k: int) -> np.ndarray:
-        if not -self.n <= int(k) < self.n:
-            raise IndexError(f"frame {k} of an episode of {self.n}")
-        return self.arr[self.start + int(k) % self.n]
-
-
-def _pictures(out: Path, assets: SessionAssets, buf, rec: dict, key: str, jobs) -> dict:
-    from umi_aug.augment.pictures import contact_sheet
-    from umi_aug.traj import plot_trajectories
-
-    pics = {}
-    E = buf.n_episodes
-    orig = [i for i in range(E) if rec["aug_mode"][i] == 0][:2]
-    augm = [i for i in range(E) if rec["aug_mode"][i] > 0][:6]
-    rows = orig + augm
-    if rows:
-        frames = [_EpisodeFrames(buf["camera0_rgb"], buf.get_episode_slice(i)) for i in rows]
-        splice = [int(rec["aug_splice_index"][i]) if rec["aug_splice_index"][i] >= 0 else len(f) - 1
-                  for i, f in zip(rows, frames)]
-        inv = {v: k for k, v in MODE_CODES.items()}
-        names = [f"{inv[int(rec['aug_mode'][i])]} d{int(rec['aug_source_episode'][i])}"
-                 + (f" a{int(rec['aug_id'][i])}" if rec["aug_id"][i] >= 0 else "") for i in rows]
-        pics["contact_sheet"] = str(contact_sheet(frames, out.with_name(out.name + ".contact_sheet.png"),
-                                                  splice_indices=splice, row_names=names))
-    for d in assets.augmentable:
-        eps = []
-        for job in jobs:
-            if job[0] == d:
-                p = _plan_cache_path(assets, job, key)
-                pl = _load_planned(p) if p.exists() else None
-                if pl is not None:
-                    eps.append(pl.episode)
-        if eps:
-            name = assets.demos[d].name
-            path = out.with_name(f"{out.name}.trajectories_{name}.png")
-            pics[f"trajectories/{name}"] = str(plot_trajectories(
-                path, assets.for_demo(d).traj_problem(d), eps,
-                title=f"{name}: {len(eps)} augmented trajectories ({assets.cfg.mode}; obstacles not drawn)"))
-    return pics
-
-
-def summary_table(summary: ExportSummary):
-    """A ``rich.table.Table`` of the summary (episodes, failures, resampling, per-stage timings)."""
-    from rich.table import Table
-
-    t = Table(title=f"umi-aug augment → {summary.out_path}")
-    t.add_column("item")
-    t.add_column("value", justify="right")
-    for k, v in [("original episodes", summary.n_original), ("augmented episodes", summary.n_augmented),
-                 ("failed jobs", summary.n_failed), ("resampled attempts", summary.n_resampled),
-                 ("jobs resumed", summary.resumed_jobs), ("new frames rendered", summary.frames_rendered),
-                 ("episodes/s (this run)", summary.episodes_per_s)]:
-        t.add_row(k, str(v))
-    for k, v in summary.stages.items():
-        t.add_row(f"stage {k}", "cached" if v["skipped"] else f"{v['seconds']:.1f} s")
-    for k, v in summary.timings_s.items():
-        t.add_row(k, f"{v:.2f}")
-    for k, v in summary.status_counts.items():
-        t.add_row(f"failed attempts: {k}", str(v))
-    return t

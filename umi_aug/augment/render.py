@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from umi_aug.augment.overlay import composite_overlay, overlay_alpha, source_frames_by_width
+from umi_aug.augment.overlay import composite_overlay, source_frames_by_width
 from umi_aug.errors import AugmentError
 
 __all__ = ["render_episode_frames", "overlay_originals", "overlay_sources", "placed_obstacles", "render_view"]
@@ -126,13 +126,13 @@ def overlay_originals(assets: SessionAssets, demo_index: int, src: np.ndarray) -
     if src.size and (src.min() < 0 or src.max() > c):
         return assets.original_frames(demo_index, src)
     ident = (assets.cache_id, int(demo_index), c)
-    slot = assets._lazy.get("overlay_originals")
+    slot = assets.memo.get("overlay_originals")
     if slot is None or slot[0] != ident:
         span = int(src.max()) - int(src.min()) + 1 if src.size else 0
         if 2 * span < c + 1:  # a few frames (an on-the-fly sample): decoding them directly is cheaper
             return assets.original_frames(demo_index, src)
         slot = (ident, assets.original_frames(demo_index, np.arange(c + 1)))
-        assets._lazy["overlay_originals"] = slot
+        assets.memo["overlay_originals"] = slot
     return slot[1][src]
 
 
@@ -159,7 +159,7 @@ def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_
     out = np.zeros((idx.size, S, S, 3), np.uint8)
     if idx.size == 0:
         return out
-    alpha = assets._get("overlay_alpha", lambda: overlay_alpha(assets.gripper_mask, assets.cfg.overlay.feather_px))
+    alpha = assets.overlay_alpha
     obstacles = placed_obstacles(assets, planned)
     new = idx < n
     if new.any():

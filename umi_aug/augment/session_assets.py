@@ -15,13 +15,14 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from umi_aug.augment.cache import StageResult
 from umi_aug.augment.config import AugmentConfig, config_hash
 from umi_aug.augment.obstacle_stage import load_obstacle_asset, obstacle_lock, obstacle_stage
+from umi_aug.augment.overlay import overlay_alpha
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import AugmentError, UmiAugError
 
@@ -68,6 +69,9 @@ class SessionAssets:
         gripper_mask: np.ndarray,  # [S, S] bool overlay mask; mask_info: how it was chosen
         paths: {"sdf", "cloud", "splat", "dataset"}: files, and in obstacle modes ``"obstacle_work"``: the folder of
             the per-asset obstacle stages; stages: StageResult per stage its source's ``prepare`` ran.
+        memo: this process's lazily made members, key → value (not pickled; :meth:`use_process_cache` shares it
+            between handles of one scene). :meth:`memoized` fills it; a module may keep a value it derives from
+            the assets here under a key of its own.
     """
 
     session_dir: Path
@@ -80,11 +84,11 @@ class SessionAssets:
     mask_info: dict
     paths: dict[str, str]
     stages: dict[str, StageResult] = field(default_factory=dict)
-    _lazy: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+    memo: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state["_lazy"] = {}
+        state["memo"] = {}
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -100,7 +104,7 @@ class SessionAssets:
         """Load the heavy members into (and read them from) this process's cache under ``key`` (default
         :attr:`cache_id`), shared with every other handle of that key — a handle made per demo of one scene
         (:meth:`for_demo`) loads the scene once. :func:`drop_process_cache` frees a key."""
-        self._lazy = _PROCESS_CACHE.setdefault(self.cache_id if key is None else key, {})
+        self.memo = _PROCESS_CACHE.setdefault(self.cache_id if key is None else key, {})
 
     @property
     def policy_intrinsics(self) -> FisheyeIntrinsics:
@@ -108,24 +112,30 @@ class SessionAssets:
         return self.intrinsics.umi_policy(self.cfg.image_size)
 
     # -------------------------------------------------------------------------------------- lazy members
-    def _get(self, key: str, make):
-        if key not in self._lazy:
-            self._lazy[key] = make()
-        return self._lazy[key]
+    def memoized(self, key: str, make: Callable[[], Any]) -> Any:
+        """``memo[key]``, made by ``make()`` on first use in this process."""
+        if key not in self.memo:
+            self.memo[key] = make()
+        return self.memo[key]
+
+    @property
+    def overlay_alpha(self) -> np.ndarray:
+        """[S, S] float32 gripper-overlay alpha (the mask feathered by ``cfg.overlay.feather_px``)."""
+        return self.memoized("overlay_alpha", lambda: overlay_alpha(self.gripper_mask, self.cfg.overlay.feather_px))
 
     @property
     def sdf(self):
         """The reconstructed scene SDF (:class:`umi_aug.recon.VoxelSDF`)."""
         from umi_aug.recon.sdf_grid import VoxelSDF
 
-        return self._get("sdf", lambda: VoxelSDF.load(self.paths["sdf"]))
+        return self.memoized("sdf", lambda: VoxelSDF.load(self.paths["sdf"]))
 
     @property
     def gaussians(self):
         """The scene's 3DGS (:class:`umi_aug.splat.Gaussians`, float32)."""
         from umi_aug.splat import read_ply
 
-        return self._get("gaussians", lambda: read_ply(self.paths["splat"]))
+        return self.memoized("gaussians", lambda: read_ply(self.paths["splat"]))
 
     @property
     def original(self):
@@ -134,10 +144,10 @@ class SessionAssets:
         then fail with ``BadZipFile``)."""
         from umi_aug.data import ReplayBuffer
 
-        if self._lazy.get("original_pid") != os.getpid():
-            self._lazy["original"] = ReplayBuffer.open(self.paths["dataset"])
-            self._lazy["original_pid"] = os.getpid()
-        return self._lazy["original"]
+        if self.memo.get("original_pid") != os.getpid():
+            self.memo["original"] = ReplayBuffer.open(self.paths["dataset"])
+            self.memo["original_pid"] = os.getpid()
+        return self.memo["original"]
 
     def original_frames(self, demo_index: int, frames: np.ndarray | slice) -> np.ndarray:
         """Original policy frames ``[K, S, S, 3]`` uint8 of demo ``demo_index``."""
@@ -169,15 +179,15 @@ class SessionAssets:
                 raise AugmentError(f"stage obstacles/{asset} failed: {exc}") from exc
             return read_ply(st.path("ply"))
 
-        return self._get(f"obstacle/{asset}", load)
+        return self.memoized(f"obstacle/{asset}", load)
 
     def obstacle_asset(self, asset: str):
         """The :class:`umi_aug.recon.ObstacleAsset` named ``asset`` (procedural name or mesh path)."""
-        return self._get(f"asset/{asset}", lambda: load_obstacle_asset(asset))
+        return self.memoized(f"asset/{asset}", lambda: load_obstacle_asset(asset))
 
     def traj_problem(self, demo_index: int):
         """The free-space :class:`umi_aug.traj.TrajProblem` of a demo (built once per process)."""
-        return self._get(f"problem/{demo_index}", lambda: self.make_problem(demo_index, None))
+        return self.memoized(f"problem/{demo_index}", lambda: self.make_problem(demo_index, None))
 
     def make_problem(self, demo_index: int, obstacle):
         """A :class:`TrajProblem` of demo ``demo_index`` with an optional :class:`umi_aug.traj.ConvexObstacle`."""

@@ -25,6 +25,8 @@ from typing import Callable
 
 import numpy as np
 
+from umi_aug.io_utils import atomic_write_text
+
 log = logging.getLogger(__name__)
 
 #: The method's stages, their package and the issue that delivers each (for the status table).
@@ -238,7 +240,6 @@ def run_demo(cfg: DemoConfig, say: Callable[[str], None] = log.info) -> dict:
 
     splat_stage = assets.stages.get("splat")
     splat_metrics = dict(splat_stage.info) if splat_stage is not None else {}
-    stage_seconds = {k: round(v.seconds, 2) for k, v in assets.stages.items()}
     summary = {
         "out_dir": str(out),
         "session": str(session_dir),
@@ -254,5 +255,5 @@ def run_demo(cfg: DemoConfig, say: Callable[[str], None] = log.info) -> dict:
         "stages": [{"stage": n, "status": st, "what": d} for n, st, d in stage_status()],
         "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
     return summary

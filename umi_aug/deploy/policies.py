@@ -33,7 +33,8 @@ class ReachPolicy:
         if self.target.shape != (6,) or not np.isfinite(self.target).all():
             raise DeployError(f"policy.target must be 6 finite numbers [x, y, z, rx, ry, rz], got {target}")
         if not (speed > 0 and rot_speed > 0 and dt > 0 and n_steps >= 1):
-            raise DeployError(f"reach policy: speed, rot_speed, dt must be > 0 and n_steps >= 1")
+            raise DeployError(f"reach policy: speed, rot_speed, dt must be > 0 and n_steps >= 1, got speed={speed}, "
+                              f"rot_speed={rot_speed}, dt={dt}, n_steps={n_steps}")
         if not 0 < max_distance_m <= REACH_MAX_DISTANCE_BOUND_M:
             raise DeployError(f"policy.max_distance_m={max_distance_m} must be in (0, {REACH_MAX_DISTANCE_BOUND_M}] m "
                               f"(the UR5e's reach)")

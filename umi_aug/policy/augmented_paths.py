@@ -195,7 +195,6 @@ def sample_frames(handle: Any, planned: Any, frame_indices: np.ndarray, timings:
     """:func:`umi_aug.augment.render_episode_frames` ``(handle, planned, frame_indices)`` (same pixels) for a
     sample's few frames: originals decoded alone (:func:`read_rows`), band-only overlay (:func:`composite_band`).
     Obstacle episodes go to the reference. ``timings`` (seconds) accumulates ``decode``, ``render``, ``overlay``."""
-    from umi_aug.augment.overlay import overlay_alpha
     from umi_aug.augment.render import overlay_sources, render_episode_frames, render_view
     from umi_aug.errors import AugmentError
 
@@ -224,7 +223,7 @@ def sample_frames(handle: Any, planned: Any, frame_indices: np.ndarray, timings:
     if new.any():
         rendered = np.stack([render_view(handle, ep.T_world_cam[k]) for k in idx[new]])
         t2 = time.perf_counter()
-        alpha = handle._get("overlay_alpha", lambda: overlay_alpha(handle.gripper_mask, handle.cfg.overlay.feather_px))
+        alpha = handle.overlay_alpha
         out[new] = composite_band(rendered, originals[: len(src_new)], alpha)
         t["render"] = t.get("render", 0.0) + t2 - t1
         t["overlay"] = t.get("overlay", 0.0) + time.perf_counter() - t2

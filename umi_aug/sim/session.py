@@ -39,7 +39,6 @@ import cv2
 import numpy as np
 
 from umi_aug.camera.calib_io import gopro_intrinsics_2_7k, save_umi_intrinsics_json
-from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.camera.umi_image import umi_policy_image
 from umi_aug.data import CameraTrajectory, ReplayBuffer, make_umi_episode, validate_replay_buffer, \
     write_camera_trajectory_csv

@@ -397,7 +397,7 @@ def frames_sheet_panels(cfg, n_episodes: int = 4) -> list[list[dict[str, Any]]] 
     carry ``key`` (source demo, aug id) and ``t``; the SPARTN row pairs each perturbed frame (``kind`` "perturbed",
     with ``demo``, ``t``, ``episode``) with the source demo's frame ``t`` it perturbs (``kind`` "original"). None
     when the largest data size's ours / gt_render / action_only / spartn datasets are not all there."""
-    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.augment.export_store import read_episode_records
     from umi_aug.data import ReplayBuffer
     from umi_aug.square.study import variant_path
     from umi_aug.square.variants import VARIANT_ATTR
@@ -487,7 +487,7 @@ def write_frames_sheet(cfg, n_episodes: int = 4) -> str | None:
 def fidelity(ours: Path, gt: Path, max_frames: int = 2000, seed: int = 0) -> dict[str, Any]:
     """PSNR / SSIM of ``ours`` vs ``gt_render`` on the new frames of the augmented episodes they share (inside the
     fisheye image circle): median and 5th percentile."""
-    from umi_aug.augment.exporter import read_episode_records
+    from umi_aug.augment.export_store import read_episode_records
     from umi_aug.data import ReplayBuffer
 
     ra, rb = read_episode_records(ours), read_episode_records(gt)

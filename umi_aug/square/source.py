@@ -332,13 +332,13 @@ class _SquareDemoAssets(SessionAssets):
             with open(self.sdf_path, "rb") as fh:
                 return pickle.load(fh)
 
-        return self._get("sdf", load)
+        return self.memoized("sdf", load)
 
     @property
     def gaussians(self):
         from umi_aug.square.scene import demo_gaussians
 
-        return self._get("gaussians", lambda: demo_gaussians(self.square["scene"], self.T_world_nut))
+        return self.memoized("gaussians", lambda: demo_gaussians(self.square["scene"], self.T_world_nut))
 
     def make_problem(self, demo_index: int, obstacle):
         """The demo's :class:`umi_aug.traj.TrajProblem` with the Panda gripper's spheres (not the UMI gripper's)."""
@@ -355,7 +355,7 @@ class _SquareDemoAssets(SessionAssets):
                                     tuple(f"panda_{i}" for i in range(len(z["radii"]))))
 
         return TrajProblem(demo, TrajScene(sdf=self.sdf, render_views=self.render_views, obstacle=obstacle),
-                           self.cfg.traj, spheres=self._get("gripper_spheres", spheres))
+                           self.cfg.traj, spheres=self.memoized("gripper_spheres", spheres))
 
     def embodiment_failure(self, demo_index: int, episode) -> str | None:
         """Why the simulated Panda cannot execute ``episode``'s new frames (None: it can)."""
@@ -607,14 +607,14 @@ def gt_render_function(assets: SquareAssets):
 def spartn_render_function(assets: SquareAssets):
     """``render_new`` of :func:`umi_aug.square.variants.write_variant` for ``spartn``: the demo's scene
     model rendered at the perturbed poses with the gripper of the demo's frames overlaid (as ``ours``)."""
-    from umi_aug.augment.overlay import composite_overlay, overlay_alpha
+    from umi_aug.augment.overlay import composite_overlay
     from umi_aug.augment.render import render_view
 
     def render_new(episode: int, info: dict[str, Any]) -> np.ndarray:
         h = assets.for_demo(int(info["source"]))
         rendered = np.stack([render_view(h, T) for T in np.asarray(info["T_world_cam"])])
         originals = h.original_frames(int(info["source"]), np.asarray(info["overlay_rows"]))
-        alpha = h._get("overlay_alpha", lambda: overlay_alpha(h.gripper_mask, h.cfg.overlay.feather_px))
+        alpha = h.overlay_alpha
         return composite_overlay(rendered, originals, alpha)
 
     return render_new

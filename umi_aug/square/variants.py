@@ -32,7 +32,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from umi_aug.augment.exporter import IMAGE_KEY, RECORD_CHUNK, RECORD_KEYS, append_episode, read_episode_records
+from umi_aug.augment.export_store import IMAGE_KEY, RECORD_CHUNK, RECORD_KEYS, append_episode, read_episode_records
 from umi_aug.data.schema import ACTION_KEY, SAMPLE_STEP_KEY
 from umi_aug.errors import AugmentError
 
