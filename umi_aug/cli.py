@@ -7,6 +7,9 @@ reconstruction → fisheye 3DGS → augmented episodes → UMI zarr → check ag
 ``umi-aug repair PATH --out NEW`` writes a repaired copy of a buffer left by an interrupted append (PATH is only read).
 ``umi-aug make-session --out DIR`` renders a synthetic UMI session of the built-in MuJoCo scene.
 ``umi-aug intrinsics FILE`` prints a calibration (UMI/OpenICC JSON or ORB-SLAM3 yaml) and its 224² policy view.
+
+The commands import what they run inside their functions (and the sub-command modules ``*/cli.py`` likewise):
+building the parser, as ``umi-aug --help`` does, loads no library beyond the standard one.
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ def unknown_keys(cfg: Any, schema: type, prefix: str = "") -> list[tuple[str, li
         ``[(dotted key, [the fields it could have meant])]`` in the config's order; nested dataclass fields
         are checked recursively, fields of other types (dicts, lists, scalars) are leaves.
     """
-    from omegaconf import DictConfig, OmegaConf
+    from omegaconf import DictConfig, OmegaConf  # lazy, optional dependency: omegaconf
 
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=False)

@@ -7,9 +7,12 @@ directory is removed and the destination is untouched.
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import json
 import os
 import secrets
 import shutil
+import time
 from pathlib import Path
 from typing import Iterator
 
@@ -103,8 +106,6 @@ class PathLock:
         self._fd: int | None = None
 
     def acquire(self) -> "PathLock":
-        import fcntl
-
         self.lock_path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
@@ -123,7 +124,6 @@ class PathLock:
     def release(self) -> None:
         if self._fd is None:
             return
-        import fcntl
 
         with contextlib.suppress(FileNotFoundError):
             self.lock_path.unlink()  # while still holding it: a waiter re-checks on its own fresh file
@@ -207,10 +207,6 @@ def exclusive_run_lock(path: str | os.PathLike, what: str) -> Iterator[Path]:
     Raises:
         RunLockedError: another process holds it; the message names ``what``, the lock file and the holder's pid.
     """
-    import fcntl
-    import json
-    import time
-
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(p, os.O_RDWR | os.O_CREAT, 0o644)

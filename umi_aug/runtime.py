@@ -8,7 +8,15 @@ Nothing here runs at import time; entry points (CLI, training, benchmarks, tests
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import logging
 import os
+import signal
+import subprocess
+import sys
+import threading
+import warnings
+from pathlib import Path
 from typing import Any, Callable, Iterator
 
 #: Environment variables that size the BLAS/OpenMP thread pools of numpy, scipy, torch and numba.
@@ -39,8 +47,6 @@ def configure_threads(n_threads: int | None = None) -> int:
     # Idle OpenMP workers sleep instead of spinning: with 2 cores, spinning threads steal the core another
     # stage (numba rasteriser, MuJoCo, JPEG-XL) needs; measured 64 → 42 ms/frame for the 100k-Gaussian render.
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")
-    import sys
-    import warnings
 
     # numba tries its TBB threading layer first and warns when the installed TBB is too old (it then uses OpenMP,
     # which is what runs here anyway): a library message a user can do nothing about, kept off the console.
@@ -63,8 +69,6 @@ class Terminated(KeyboardInterrupt):
 def run_interruptible(main: Callable[[], Any], interrupted_line: Callable[[str], str]) -> None:
     """Run a script's ``main()`` with SIGTERM ending it like Ctrl-C: one line on stderr,
     ``interrupted_line(how)`` (``how`` = ``"SIGTERM"`` or ``"Ctrl-C"``), and exit code 143 / 130."""
-    import sys
-
     try:
         with terminate_like_ctrl_c():
             main()
@@ -88,9 +92,6 @@ def interruption(exc: KeyboardInterrupt) -> tuple[str, int]:
 def terminate_like_ctrl_c() -> Iterator[None]:
     """Within the block, SIGTERM raises :class:`Terminated` in the main thread (the previous handler is put back
     afterwards; elsewhere than the main thread nothing changes)."""
-    import signal
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -104,9 +105,6 @@ def terminate_like_ctrl_c() -> Iterator[None]:
 def restore_python_signal_handlers() -> None:
     """Re-install Python's own SIGTERM handler after importing a native library that replaced it (pycolmap's
     glog installs a "failure signal handler" that prints a native stack trace and kills the process)."""
-    import signal
-    import threading
-
     if threading.current_thread() is threading.main_thread():
         handler = signal.getsignal(signal.SIGTERM)
         if handler is not None:
@@ -116,8 +114,6 @@ def restore_python_signal_handlers() -> None:
 def make_out_dir(path: str | os.PathLike, key: str, error: type[Exception]) -> Path:
     """Create the results folder ``path`` of an app (``key`` = the setting that named it, e.g. ``out_dir``), or
     raise ``error`` in one line: ``out_dir=…: is a file, not a folder; …`` / ``…: cannot be created (…)``."""
-    from pathlib import Path
-
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise error(f"{key}={path}: is a file, not a folder; the results are written into a folder: choose another "
@@ -134,9 +130,6 @@ def log_to_file(path: str | os.PathLike, quiet: tuple[str, ...] = ("robosuite", 
     """Send library logs (INFO and up) to ``path`` instead of the console: the root logger's handlers are
     replaced by one file handler, and the loggers named in ``quiet`` are raised to WARNING. For applications
     (``eval/*.py``) that print their own summary; the folder of ``path`` is created."""
-    import logging
-    from pathlib import Path
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     root = logging.getLogger()
@@ -153,9 +146,6 @@ def log_to_file(path: str | os.PathLike, quiet: tuple[str, ...] = ("robosuite", 
 def _background_child_setup(niceness: int = 10) -> None:
     """``preexec_fn`` of :func:`start_background_helper`: low priority (``nice``), and killed with its parent
     (Linux ``PR_SET_PDEATHSIG``: a Ctrl-C of the pipeline leaves no helper running)."""
-    import ctypes
-    import signal
-
     os.nice(niceness)
     try:
         ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
@@ -168,9 +158,6 @@ def start_background_helper(module: str, args: list[str], *, stdin_bytes: bytes 
     one thread per pool (OpenMP, MKL, numba), killed with its parent. ``stdin_bytes`` (small: it must fit the pipe)
     is written to its stdin; ``output``: an open binary file for its stdout + stderr (None: discarded). Returns the
     ``subprocess.Popen``, or None when no process could be started (callers treat the helper as optional)."""
-    import subprocess
-    import sys
-
     env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1", MKL_NUM_THREADS="1")
     sink = output if output is not None else subprocess.DEVNULL
     try:

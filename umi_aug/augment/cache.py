@@ -13,6 +13,7 @@ dataset and intrinsics, :func:`umi_aug.data.fingerprint.content_fingerprint`), n
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import os
@@ -64,8 +65,6 @@ def build_lock(folder: Path, name: str = ".build.lock"):
     """Exclusive, BLOCKING lock (the file ``folder/name``) of a folder of stages, or of one stage in it: executor
     workers that need the same stages while they are being built wait for them, then find them cached (the kernel
     drops the lock if the holder dies)."""
-    import fcntl
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     fd = os.open(folder / name, os.O_RDWR | os.O_CREAT, 0o644)

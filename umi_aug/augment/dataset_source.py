@@ -38,7 +38,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+import cv2
 import numpy as np
+from tqdm import tqdm
 
 from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig
@@ -46,7 +48,21 @@ from umi_aug.augment.obstacle_stage import check_obstacle_assets
 from umi_aug.augment.preflight import MAX_STEP_DEG, MAX_STEP_M
 from umi_aug.augment.session_assets import OBSTACLE_WORK_KEY, DemoInfo, SessionAssets, drop_process_cache
 from umi_aug.augment.stages import contact_stage, gripper_mask_stage, init_only_gaussians
+from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
+from umi_aug.data import ReplayBuffer, make_umi_episode
+from umi_aug.data.fingerprint import content_fingerprint
+from umi_aug.data.validate import (FROZEN_ANGLE_RAD, FROZEN_MIN_STEPS, FROZEN_STEP_M, first_frozen_step,
+                                   gripper_width_problem)
 from umi_aug.errors import AugmentError, UmiAugError
+from umi_aug.geometry import pos_rotvec_to_pose
+from umi_aug.geometry.umi import camera_poses_from_tcp_poses, umi_T_cam_tcp
+from umi_aug.io_utils import atomic_write_text
+from umi_aug.recon import constants as RC
+from umi_aug.recon.cloud import SceneCloud, clean_cloud, read_ply, write_ply
+from umi_aug.recon.contact import detect_contact
+from umi_aug.recon.pipeline import first_close_index
+from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, reachable_region
+from umi_aug.recon.sfm import feature_mask, run_sfm
 
 __all__ = ["DatasetInput", "DatasetAssets", "DatasetCheck", "is_dataset_path", "check_dataset",
            "parse_episodes", "scene_groups", "dataset_fingerprint", "prepare_dataset", "background_shell_points",
@@ -99,8 +115,6 @@ class DatasetInput:
 
     @property
     def T_cam_tcp(self) -> np.ndarray:
-        from umi_aug.geometry.umi import umi_T_cam_tcp
-
         return umi_T_cam_tcp(tcp_offset=self.tcp_offset_m)
 
 
@@ -188,11 +202,6 @@ def check_dataset(path: str | os.PathLike, image_size: int, inp: DatasetInput) -
     than ``max_step_m`` / ``max_step_deg`` apart) and no frozen-pose run (identical poses = SLAM holding the last
     pose).
     """
-    from umi_aug.data import ReplayBuffer
-    from umi_aug.data.validate import (FROZEN_ANGLE_RAD, FROZEN_MIN_STEPS, FROZEN_STEP_M, first_frozen_step,
-                                       gripper_width_problem)
-    from umi_aug.geometry import pos_rotvec_to_pose
-
     p = Path(path)
     if not p.exists():
         raise AugmentError(f"{p}: no such dataset")
@@ -270,8 +279,6 @@ def check_dataset(path: str | os.PathLike, image_size: int, inp: DatasetInput) -
 def dataset_fingerprint(path: str | os.PathLike) -> str:
     """Content hash of the dataset (:func:`umi_aug.data.fingerprint.content_fingerprint`: zip entries with their
     CRC-32s, or a directory's files): an in-place edit of the same size changes it."""
-    from umi_aug.data.fingerprint import content_fingerprint
-
     return content_fingerprint(path)
 
 
@@ -361,21 +368,15 @@ class DatasetAssets(SessionAssets):
 
     def umi_episode(self, episode, demo_index: int | None = None) -> dict[str, np.ndarray]:
         """UMI keys of an augmented episode with THIS dataset's camera→TCP offset."""
-        from umi_aug.data import make_umi_episode
-
         return make_umi_episode(np.asarray(episode.T_world_cam) @ self.T_cam_tcp, episode.gripper_width)
 
 
 # ------------------------------------------------------------------------------------------------------ stages
 def _policy_intrinsics(image_size: int):
-    from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
-
     return gopro_intrinsics_2_7k().umi_policy(image_size)
 
 
 def _read_frames(dataset: Path, episode: int, idx: np.ndarray) -> np.ndarray:
-    from umi_aug.data import ReplayBuffer
-
     with ReplayBuffer.open(dataset) as buf:
         sl = buf.get_episode_slice(int(episode))
         arr = buf["camera0_rgb"]
@@ -396,14 +397,6 @@ class EpisodePoses:
 def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict[int, EpisodePoses], fps: dict[int, float],
                  cfg: AugmentConfig, inp: DatasetInput) -> StageResult:
     """Known-pose triangulation + cloud + SDF + contacts of one group (outputs as the session reconstruction's)."""
-    import cv2
-
-    from umi_aug.io_utils import atomic_write_text
-    from umi_aug.recon import constants as RC
-    from umi_aug.recon.cloud import clean_cloud, write_ply
-    from umi_aug.recon.pipeline import first_close_index
-    from umi_aug.recon.sfm import feature_mask, run_sfm
-
     # known poses always (the TCP poses are the SLAM's); the same key whatever sfm.mode the caller left
     rc = dataclasses.replace(cfg.recon, cone_half_angle_deg=cfg.cone_half_angle_deg,
                              sfm=dataclasses.replace(cfg.recon.sfm, mode="known_poses"))
@@ -463,12 +456,6 @@ def _stage_sdf(work: Path, dataset: Path, scene: StageResult, eps: list[int], de
     the demo's own camera path 17 cm "inside" on the real cup episode. Points further than ``SDF_CROP_M`` outside
     the region are left out. A trajectory cannot tunnel through a surface without coming within the clearance.
     """
-    from umi_aug.io_utils import atomic_write_text
-    from umi_aug.recon.cloud import SceneCloud, read_ply
-    from umi_aug.recon.contact import detect_contact
-    from umi_aug.recon.pipeline import first_close_index
-    from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, reachable_region
-
     rc = dataclasses.replace(cfg.recon, cone_half_angle_deg=cfg.cone_half_angle_deg)
 
     def fn(out: Path):
@@ -521,6 +508,7 @@ def dataset_views(dataset: Path, demos: dict[int, EpisodePoses], splice: dict[in
     """3DGS views of a group: each episode's frames ``0..splice`` (every ``stride``-th) at the policy intrinsics,
     loss mask = valid image circle minus UMI's gripper/mirror(/finger) polygons, and not the black pixels UMI's
     pipeline painted. Returns ``(views, intrinsics)``."""
+    # lazy, start-up: torch
     from umi_aug.splat.train import TrainView
     from umi_aug.splat.train_session import loss_mask
 
@@ -538,6 +526,7 @@ def dataset_views(dataset: Path, demos: dict[int, EpisodePoses], splice: dict[in
 
 def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, EpisodePoses], scene: StageResult,
                  contact: StageResult, cfg: AugmentConfig, inp: DatasetInput, progress: bool) -> StageResult:
+    # lazy, start-up: torch
     from umi_aug.splat import write_ply
     from umi_aug.splat.train import SplatTrainConfig, train_splat
     from umi_aug.splat.train_session import read_point_cloud, top_up_init_points
@@ -637,11 +626,6 @@ def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg
     Raises:
         AugmentError: a bad dataset (before any compute) or a failed stage (named with its group).
     """
-    from tqdm import tqdm
-
-    from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
-    from umi_aug.geometry.umi import camera_poses_from_tcp_poses
-
     dataset, work = Path(dataset), Path(work_dir)
     chk = check_dataset(dataset, cfg.image_size, inp)
     fp = dataset_fingerprint(dataset)

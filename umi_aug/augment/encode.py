@@ -32,7 +32,7 @@ def can_encode_ahead(arr) -> bool:
 def _encode_one(arr, frame: np.ndarray) -> tuple[bytes | None, float]:
     """``(chunk bytes, seconds)`` of one frame ``[1, H, W, C]``; ``None`` when zarr would store no chunk (an
     all-fill-value frame of an array with ``write_empty_chunks=False``)."""
-    from zarr.util import all_equal
+    from zarr.util import all_equal  # lazy, start-up: zarr
 
     t0 = time.perf_counter()
     chunk = frame.astype(arr.dtype, order=arr.order, copy=False)  # what zarr's _process_for_setitem passes on

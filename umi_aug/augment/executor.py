@@ -19,9 +19,14 @@ so ``workers x threads`` never oversubscribes the machine.
 
 from __future__ import annotations
 
+import ctypes
 import logging
+import multiprocessing as mp
 import os
+import signal
+import sys
 from collections import deque
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
 from umi_aug.errors import AugmentError
@@ -57,10 +62,6 @@ PR_SET_PDEATHSIG = 1
 def die_with_parent(parent_pid: int | None = None) -> bool:
     """Make the kernel SIGKILL this process when its parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``); if the
     parent (``parent_pid``) is already gone, exit now. Returns False where unsupported (no-op)."""
-    import ctypes
-    import signal
-    import sys
-
     if not sys.platform.startswith("linux"):
         return False
     try:
@@ -74,8 +75,6 @@ def die_with_parent(parent_pid: int | None = None) -> bool:
 
 
 def _worker_init(threads: int, parent_pid: int | None = None) -> None:
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     die_with_parent(parent_pid)
     os.environ.update(_threads_env(threads))
@@ -121,9 +120,6 @@ def map_ordered(fn: Callable[[T], R], items: Iterable[T], *, executor: str = "lo
 
 
 def _map_pool(fn: Callable[[T], R], items: Iterable[T], workers: int, threads: int, ahead: int) -> Iterator[R]:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
     pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
                                initargs=(threads, os.getpid()))
     pending: deque = deque()

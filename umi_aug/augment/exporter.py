@@ -22,15 +22,19 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import json
 import logging
 import os
 import pickle
+import re
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from umi_aug.augment.config import AugmentConfig, config_hash, obstacle_key
 from umi_aug.augment.encode import FrameEncoder, can_encode_ahead
@@ -219,8 +223,6 @@ DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 def _disk_full_message(exc: OSError, writing: dict, wpath: Path) -> str:
     """One line for a full disk: the path being written (the file when the error names one), the free space left on
     its file system, and what is kept — the export's episodes written so far, from its own records."""
-    import shutil
-
     path = Path(exc.filename) if exc.filename else Path(writing["path"])
     probe = path
     while not probe.exists() and probe != probe.parent:
@@ -289,9 +291,6 @@ def _discard_previous(out: Path, wpath: Path) -> None:
 def _remove_leftover_temporaries(out: Path) -> None:
     """Delete ``<out>.tmp-<8 hex>`` / ``<out>.partial.tmp-<8 hex>`` left by a killed atomic write or clean-up
     (:func:`umi_aug.io_utils.temp_sibling` names; this run holds the output's lock, so none is in use)."""
-    import glob
-    import re
-
     pat = re.compile(re.escape(out.name) + r"(\.partial)?\.tmp-[0-9a-f]{8}")
     for p in out.parent.glob(glob.escape(out.name) + "*.tmp-*") if out.parent.is_dir() else []:
         if pat.fullmatch(p.name):
@@ -308,8 +307,6 @@ def _expected_bytes(src: Path, n_jobs_max: int, n_src_eps: int, include_original
 def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resume: bool, progress: bool,
             pictures: bool, fast: frozenset = frozenset(), encode_threads: int | None = None,
             command: list[str] | None = None, writing: dict | None = None) -> ExportSummary:
-    from tqdm import tqdm
-
     t_start = time.perf_counter()
     src.check(cfg.image_size)  # every input, before anything is removed or computed: one error naming the key
     key = _run_key(cfg, src.fingerprint())
@@ -440,8 +437,6 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
     finally:
         buf.close()
     if out.name.endswith(".zip"):
-        from umi_aug.data import ReplayBuffer
-
         t0 = time.perf_counter()
         writing.update(path=out, what="the .zarr.zip")
         with ReplayBuffer.open(wpath) as final:

@@ -19,9 +19,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from umi_aug.augment.cache import StageResult, build_lock, run_stage
+from umi_aug.augment.cache import StageResult, build_lock, read_manifest, run_stage
 from umi_aug.augment.config import OBSTACLE_FIT_ITERATIONS, AugmentConfig
 from umi_aug.errors import AugmentError, UmiAugError
+from umi_aug.recon.obstacles import PROCEDURAL_ASSETS, load_mesh_asset, procedural_asset
+from umi_aug.runtime import start_background_helper
 
 if TYPE_CHECKING:
     import subprocess
@@ -34,10 +36,6 @@ log = logging.getLogger(__name__)
 
 def scaled_obstacle_asset(name: str, scale: float):
     """Asset ``name`` (procedural or mesh path) scaled by ``scale`` about its object origin."""
-    from pathlib import Path
-
-    from umi_aug.recon.obstacles import PROCEDURAL_ASSETS, load_mesh_asset, procedural_asset
-
     if name in PROCEDURAL_ASSETS:
         return procedural_asset(name, scale)
     if Path(name).is_file():
@@ -76,6 +74,7 @@ def obstacle_stage(work: Path, cfg: AugmentConfig, name: str) -> StageResult:
     not the other assets). Callers that may run concurrently hold the asset's :func:`build_lock` (as
     :meth:`SessionAssets.obstacle_gaussians` does)."""
     def fn(out: Path):
+        # lazy, start-up: torch
         from umi_aug.splat import write_ply
         from umi_aug.splat.obstacle_gaussians import ObstacleGaussianConfig, obstacle_gaussians
 
@@ -107,9 +106,6 @@ def start_obstacle_prefit(work: Path, cfg: AugmentConfig, names: Sequence[str]) 
     on the child: an episode that needs an asset first fits it itself (or waits for the child's lock); its failures
     are only logged to ``obstacles/prefit.log`` (the episode's fit raises them where they count).
     ``UMI_AUG_NO_OBSTACLE_PREFIT=1`` turns it off."""
-    from umi_aug.augment.cache import read_manifest
-    from umi_aug.runtime import start_background_helper
-
     if os.environ.get("UMI_AUG_NO_OBSTACLE_PREFIT", "") not in ("", "0") or not cfg.obstacle.fit_gaussians:
         return None
     todo = [n for n in dict.fromkeys(names) if read_manifest(Path(work) / obstacle_stage_folder(n)) is None]

@@ -17,10 +17,10 @@ __all__ = ["contact_sheet", "pyplot", "save_figure"]
 
 def pyplot():
     """matplotlib.pyplot on the headless Agg backend (imported on first use)."""
-    import matplotlib
+    import matplotlib  # lazy, start-up: matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy, start-up: matplotlib
 
     return plt
 

@@ -17,6 +17,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from umi_aug.errors import AugmentError, ReconError, TrajError
+from umi_aug.recon.obstacles import sample_obstacle_placement
+from umi_aug.traj import ConvexObstacle
+from umi_aug.traj.generate import finish_batch
+from umi_aug.traj.plan import solve
 
 __all__ = ["MODE_CODES", "episode_seed", "ObstacleRecord", "PlannedEpisode", "PlanOutcome", "plan_episode",
            "try_plan_episode"]
@@ -58,8 +62,6 @@ class ObstacleRecord:
 
     def convex_obstacle(self):
         """The inflated hull as :class:`umi_aug.traj.ConvexObstacle`."""
-        from umi_aug.traj import ConvexObstacle
-
         return ConvexObstacle(self.hull_world, self.inflation)
 
 
@@ -155,11 +157,6 @@ def first_attempt_obstacle_assets(cfg, demo_indices) -> list[str]:
 
 def try_plan_episode(assets: SessionAssets, demo_index: int, aug_id: int, mode: str) -> PlanOutcome:
     """:func:`plan_episode` with the failure record (see there)."""
-    from umi_aug.recon.obstacles import sample_obstacle_placement
-    from umi_aug.traj import ConvexObstacle
-    from umi_aug.traj.generate import finish_batch
-    from umi_aug.traj.plan import solve
-
     cfg = assets.cfg
     if mode not in ("freespace", "obstacle"):
         raise AugmentError(f"plan_episode: mode {mode!r}; expected 'freespace' or 'obstacle'")

@@ -134,6 +134,7 @@ def check_demo_trajectories(sess) -> None:
 
 def _dataset_check(ds: Path, image_size: int | None) -> tuple[int, int]:
     """Validate the session's dataset: (episodes, bytes)."""
+    # lazy, start-up: zarr
     from umi_aug.data import ReplayBuffer
     from umi_aug.data.validate import gripper_width_problem
 
@@ -173,7 +174,7 @@ def check_session_inputs(session_dir: str | os.PathLike, image_size: int | None 
     Raises:
         AugmentError: the first problem, naming the file/key/row/value.
     """
-    from umi_aug.recon.session_io import load_session
+    from umi_aug.recon.session_io import load_session  # lazy, start-up: cv2
 
     root = Path(session_dir)
     ds = root / "dataset.zarr.zip"

@@ -18,6 +18,7 @@ reconstructed region, or beyond the lens' valid angle); UMI's frames are dark th
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
@@ -37,10 +38,9 @@ OBSTACLE_ALPHA_MIN: float = 1.0 / 255.0
 
 def placed_obstacles(assets: SessionAssets, planned: PlannedEpisode) -> list:
     """The episode's obstacle as ``[PlacedGaussians]`` (scaled in the object frame), or ``[]``."""
-    import math
+    import torch  # lazy, start-up: torch
 
-    import torch
-
+    # lazy, start-up: torch
     from umi_aug.splat import Gaussians
     from umi_aug.splat.compose import PlacedGaussians
 
@@ -56,7 +56,7 @@ def placed_obstacles(assets: SessionAssets, planned: PlannedEpisode) -> list:
 
 def render_view(assets: SessionAssets, T_world_cam: np.ndarray, obstacles: Sequence = ()) -> np.ndarray:
     """The 3DGS scene (+ placed obstacles) at the policy intrinsics → ``[S, S, 3]`` uint8 (no overlay)."""
-    from umi_aug.splat.compose import render_composed, rgb_to_uint8
+    from umi_aug.splat.compose import render_composed, rgb_to_uint8  # lazy, start-up: torch
 
     cfg = assets.cfg
     out = render_composed(assets.gaussians, list(obstacles), np.asarray(T_world_cam, np.float64),
@@ -73,8 +73,9 @@ def _obstacle_over_original(assets: SessionAssets, T_world_cam: np.ndarray, obst
     ``scene_tiles``: the scene is rasterised only in the 16x16 tiles where an obstacle has alpha >=
     :data:`OBSTACLE_ALPHA_MIN` (the only pixels the test reads; ~4 % of a 224² frame), and not at all when no
     obstacle shows; False: the whole scene frame (the reference path). Same pixels either way."""
-    import torch
+    import torch  # lazy, start-up: torch
 
+    # lazy, start-up: numba, scipy, torch
     from umi_aug.splat import render
     from umi_aug.splat.renderer import tiles_covering
 
@@ -174,7 +175,7 @@ def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_
         src = int(ep.source_contact_index) + (k_old - n)
         originals = assets.original_frames(planned.demo_index, src)
         if obstacles:
-            from umi_aug.splat.compose import transform_gaussians
+            from umi_aug.splat.compose import transform_gaussians  # lazy, start-up: torch
 
             world = [transform_gaussians(o.gaussians, o.T_world_obj) for o in obstacles]
             withobs = np.stack([_obstacle_over_original(assets, ep.T_world_cam[k], world, o, obstacle_tiles)

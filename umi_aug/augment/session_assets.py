@@ -25,6 +25,8 @@ from umi_aug.augment.obstacle_stage import load_obstacle_asset, obstacle_lock, o
 from umi_aug.augment.overlay import overlay_alpha
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import AugmentError, UmiAugError
+from umi_aug.recon.sdf_grid import VoxelSDF
+from umi_aug.traj import Demonstration, TrajProblem, TrajScene
 
 __all__ = ["DemoInfo", "SessionAssets", "OBSTACLE_WORK_KEY", "drop_process_cache"]
 
@@ -126,14 +128,12 @@ class SessionAssets:
     @property
     def sdf(self):
         """The reconstructed scene SDF (:class:`umi_aug.recon.VoxelSDF`)."""
-        from umi_aug.recon.sdf_grid import VoxelSDF
-
         return self.memoized("sdf", lambda: VoxelSDF.load(self.paths["sdf"]))
 
     @property
     def gaussians(self):
         """The scene's 3DGS (:class:`umi_aug.splat.Gaussians`, float32)."""
-        from umi_aug.splat import read_ply
+        from umi_aug.splat import read_ply  # lazy, start-up: torch
 
         return self.memoized("gaussians", lambda: read_ply(self.paths["splat"]))
 
@@ -142,7 +142,7 @@ class SessionAssets:
         """The session's original replay buffer (read-only, lazy chunk access). Opened once per process: a
         forked child re-opens it, as a zip file handle shared across a fork shares its read offset (concurrent reads
         then fail with ``BadZipFile``)."""
-        from umi_aug.data import ReplayBuffer
+        from umi_aug.data import ReplayBuffer  # lazy, start-up: zarr
 
         if self.memo.get("original_pid") != os.getpid():
             self.memo["original"] = ReplayBuffer.open(self.paths["dataset"])
@@ -164,7 +164,7 @@ class SessionAssets:
     def obstacle_gaussians(self, asset: str):
         """Gaussians of obstacle ``asset`` in its object frame: its ``obstacles/<asset>`` stage, fitted on first
         use (in any process) and read from the cache after."""
-        from umi_aug.splat import read_ply
+        from umi_aug.splat import read_ply  # lazy, start-up: torch
 
         if OBSTACLE_WORK_KEY not in self.paths or asset not in self.cfg.obstacle.assets:
             raise AugmentError(f"{self.work_dir}: no obstacle Gaussians for asset {asset!r} (obstacle assets of "
@@ -191,8 +191,6 @@ class SessionAssets:
 
     def make_problem(self, demo_index: int, obstacle):
         """A :class:`TrajProblem` of demo ``demo_index`` with an optional :class:`umi_aug.traj.ConvexObstacle`."""
-        from umi_aug.traj import Demonstration, TrajProblem, TrajScene
-
         d = self.demo(demo_index)
         demo = Demonstration(T_world_cam=d.T_world_cam, timestamps=d.timestamps, gripper_width=d.gripper_width,
                              contact_index=int(d.contact_index))

@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from numcodecs import Blosc
 from numcodecs.abc import Codec
 from numcodecs.compat import ensure_contiguous_ndarray, ndarray_copy
 
@@ -88,7 +89,7 @@ class UmiJpegXl(Codec):
 
     def encode(self, buf: Any) -> bytes:
         """Encode an image chunk (uint8 ``(..., H, W, C)``) to JPEG XL bytes."""
-        import imagecodecs
+        import imagecodecs  # lazy, start-up: imagecodecs
 
         arr = _squeeze_frames(np.asarray(buf))
         return imagecodecs.jpegxl_encode(
@@ -99,7 +100,7 @@ class UmiJpegXl(Codec):
 
     def decode(self, buf: Any, out: Any = None) -> Any:
         """Decode JPEG XL bytes to an image array; when ``out`` is given its raw bytes are filled."""
-        import imagecodecs
+        import imagecodecs  # lazy, start-up: imagecodecs
 
         img = imagecodecs.jpegxl_decode(
             ensure_contiguous_ndarray(buf), index=self.index, keeporientation=self.keeporientation,
@@ -113,7 +114,7 @@ class UmiJpegXl(Codec):
 def register_codecs() -> None:
     """Register :class:`UmiJpegXl` with numcodecs under ``imagecodecs_jpegxl`` (idempotent; replaces any
     other class registered for that id, e.g. ``imagecodecs.numcodecs.Jpegxl``)."""
-    from numcodecs.registry import codec_registry, register_codec
+    from numcodecs.registry import codec_registry, register_codec  # lazy, start-up: zarr
 
     if codec_registry.get(JPEGXL_CODEC_ID) is not UmiJpegXl:
         register_codec(UmiJpegXl, JPEGXL_CODEC_ID)
@@ -150,15 +151,11 @@ def umi_lowdim_compressor() -> None:
 
 def umi_default_compressor() -> Codec:
     """UMI ReplayBuffer's ``'default'`` compressor: Blosc lz4, clevel 5, NOSHUFFLE."""
-    from numcodecs import Blosc
-
     return Blosc(cname="lz4", clevel=5, shuffle=Blosc.NOSHUFFLE)
 
 
 def umi_disk_compressor() -> Codec:
     """UMI ReplayBuffer's ``'disk'`` compressor: Blosc zstd, clevel 5, BITSHUFFLE."""
-    from numcodecs import Blosc
-
     return Blosc(cname="zstd", clevel=5, shuffle=Blosc.BITSHUFFLE)
 
 

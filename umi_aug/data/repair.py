@@ -15,7 +15,14 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import zarr
+
+from umi_aug.data.codecs import register_codecs
+from umi_aug.data.replay_buffer import ReplayBuffer
+from umi_aug.data.store import close_store, open_store
+from umi_aug.data.validate import open_array
 from umi_aug.errors import DatasetError
+from umi_aug.io_utils import atomic_path, is_inside, remove_tree_atomically, temp_sibling
 
 __all__ = ["RepairResult", "repair_copy"]
 
@@ -40,14 +47,6 @@ def repair_copy(src: str | os.PathLike, dst: str | os.PathLike) -> RepairResult:
             readable store; the repaired copy would hold no step (``episode_ends`` is the damaged part: cutting the
             data to it would drop every row) or is still invalid.
     """
-    import zarr
-
-    from umi_aug.data.codecs import register_codecs
-    from umi_aug.data.replay_buffer import ReplayBuffer
-    from umi_aug.data.store import close_store, open_store
-    from umi_aug.data.validate import open_array
-    from umi_aug.io_utils import atomic_path, is_inside, remove_tree_atomically, temp_sibling
-
     src, dst = Path(src), Path(dst)
     if os.path.lexists(dst):
         raise DatasetError(f"--out {dst}: exists; repair writes a new copy and never replaces anything: choose a "

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from umi_aug.errors import DatasetError
+from umi_aug.geometry import matrix_to_quat_xyzw, pos_quat_xyzw_to_pose, quat_xyzw_to_matrix
 from umi_aug.io_utils import atomic_write_text
 
 COLUMNS: tuple[str, ...] = ("frame_idx", "timestamp", "state", "is_lost", "is_keyframe",
@@ -87,8 +88,6 @@ def read_camera_trajectory_csv(path: str | os.PathLike) -> CameraTrajectory:
         unparsable numbers, booleans other than true/false, non-increasing frame_idx or timestamp, non-finite
         timestamp, non-finite pose or quaternion norm outside [0.9, 1.1] on a tracked row.
     """
-    from umi_aug.geometry import pos_quat_xyzw_to_pose
-
     path = Path(path)
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
@@ -152,8 +151,6 @@ def read_camera_trajectory_csv(path: str | os.PathLike) -> CameraTrajectory:
 
 def _quats_for_writing(traj: CameraTrajectory, T: np.ndarray) -> np.ndarray:
     """xyzw quaternions of ``T``: the stored ones where they reproduce ``T``'s rotation bit-exactly."""
-    from umi_aug.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-
     n = T.shape[0]
     q = np.zeros((n, 4))
     valid = traj.valid

@@ -7,12 +7,11 @@ from typing import Mapping
 import numpy as np
 
 from umi_aug.errors import DatasetError
+from umi_aug.geometry import pos_rotvec_to_pose, pose_to_pos_rotvec
 
 
 def _pose6(pose: np.ndarray, name: str) -> np.ndarray:
     """Accept a 4×4 pose or a UMI 6-vector; return the float64 (6,) ``[x, y, z, rx, ry, rz]``."""
-    from umi_aug.geometry import pose_to_pos_rotvec
-
     p = np.asarray(pose, dtype=np.float64)
     if p.shape == (4, 4):
         p = pose_to_pos_rotvec(p)
@@ -41,8 +40,6 @@ def make_umi_episode(
     Raises:
         DatasetError: wrong shapes/dtypes, non-finite values or mismatched lengths.
     """
-    from umi_aug.geometry import pose_to_pos_rotvec
-
     T = np.asarray(T_world_tcp, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4) or T.shape[0] < 1:
         raise DatasetError(f"make_umi_episode: `T_world_tcp` must be (T, 4, 4) with T >= 1, got {T.shape}")
@@ -77,8 +74,6 @@ def make_umi_episode(
 def episode_tcp_poses(episode: Mapping[str, np.ndarray], robot: int = 0) -> np.ndarray:
     """Inverse of :func:`make_umi_episode` for the poses: ``robot{i}_eef_pos`` + ``_eef_rot_axis_angle``
     → ``T_world_tcp`` float64 (T, 4, 4) (metres, table-tag frame)."""
-    from umi_aug.geometry import pos_rotvec_to_pose
-
     p = f"robot{robot}_"
     for k in (p + "eef_pos", p + "eef_rot_axis_angle"):
         if k not in episode:

@@ -10,6 +10,7 @@ chunk and its rows, instead of an anonymous codec traceback in training).
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ from typing import Any
 
 import numpy as np
 import zarr
+from tqdm import tqdm
 
 from umi_aug.data import schema
 from umi_aug.data.codecs import register_codecs
@@ -163,8 +165,6 @@ def _check_data_array(key: str, arr: zarr.Array, n_steps: int, name: str, check_
 
 def expected_chunk_keys(arr: zarr.Array) -> list[str]:
     """Store keys (relative to the array) of every chunk of ``arr``, in row order."""
-    import itertools
-
     grid = [range(-(-s // c)) for s, c in zip(arr.shape, arr.chunks)]
     sep = getattr(arr, "_dimension_separator", None) or "."
     return [sep.join(map(str, idx)) for idx in itertools.product(*grid)]
@@ -206,8 +206,6 @@ def decode_all_chunks(key: str, arr: zarr.Array, name: str, progress: bool = Fal
 
     Returns the number of chunks decoded.
     """
-    from tqdm import tqdm
-
     c0 = arr.chunks[0]
     n = -(-arr.shape[0] // c0) if arr.ndim else 0
     for i in tqdm(range(n), desc=f"decode data/{key}", unit="chunk", disable=not progress, leave=False,
@@ -225,7 +223,7 @@ def decode_all_chunks(key: str, arr: zarr.Array, name: str, progress: bool = Fal
 def relative_turn_rad(rotvec: np.ndarray) -> np.ndarray:
     """Rotation angle (rad) between consecutive rotation vectors ``rotvec`` [T, 3] → [T-1], accurate near 0
     (``atan2(|sin|, cos)`` of the relative rotation, not ``arccos`` of its trace)."""
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # lazy, start-up: scipy
 
     R = Rotation.from_rotvec(np.asarray(rotvec, np.float64)).as_matrix()
     R_rel = np.einsum("nji,njk->nik", R[:-1], R[1:])

@@ -15,6 +15,7 @@ from umi_aug.augment.pictures import contact_sheet, pyplot, save_figure  # noqa:
 def lens_figure(intr, path: Path) -> Path:
     """Three panels: ray angle θ per pixel (with 90° and image-circle contours and UMI's gripper mask),
     the Kannala–Brandt curve θ_d(θ) with its fold-over, and which cube face feeds each pixel."""
+    # lazy, start-up: cv2
     from umi_aug.camera.cubemap import CubemapFisheyeRemap
     from umi_aug.camera.kb import kb_theta_d, unproject
     from umi_aug.camera.masks import predefined_mask

@@ -25,7 +25,12 @@ from typing import Callable
 
 import numpy as np
 
+from umi_aug.demo import pictures
+from umi_aug.errors import AugmentError
 from umi_aug.io_utils import atomic_write_text
+from umi_aug.sim.gl import import_mujoco
+from umi_aug.sim.raster import RasterOptions
+from umi_aug.splat.warmup import start_background_compile
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +103,7 @@ def _has_module(mod: str) -> bool:
 
 def _session(cfg: DemoConfig, say: Callable[[str], None]) -> tuple[Path, dict]:
     """The synthetic session (made, or reused when it exists for the same settings)."""
-    from umi_aug.sim.session import SESSION_LAYOUT, make_session
+    from umi_aug.sim.session import SESSION_LAYOUT, make_session  # lazy, start-up: cv2, zarr
 
     session_dir = Path(cfg.out_dir) / "session"
     marker = Path(cfg.out_dir) / "session.settings.json"
@@ -131,13 +136,11 @@ def compare_with_ground_truth(session_dir: Path, dataset: Path, assets, n_frames
     exactly as the session's own frames were made. PSNR is over pixels inside the lens circle and outside the
     gripper overlay mask (those pixels are copied from real frames, not rendered).
     """
+    # lazy, start-up: cv2, scipy, zarr
     from umi_aug.augment import plan_episode, read_episode_records
     from umi_aug.camera.umi_image import umi_policy_image
     from umi_aug.data import ReplayBuffer
-    from umi_aug.demo import pictures
     from umi_aug.sim.fisheye_renderer import FisheyeRenderer
-    from umi_aug.sim.gl import import_mujoco
-    from umi_aug.sim.raster import RasterOptions
     from umi_aug.sim.scene import SCENE_FAR, SCENE_NEAR
     from umi_aug.sim.tabletop_state import TabletopState
 
@@ -150,7 +153,7 @@ def compare_with_ground_truth(session_dir: Path, dataset: Path, assets, n_frames
     intr = assets.intrinsics
     policy_intr = assets.policy_intrinsics
     uu, vv = np.meshgrid(np.arange(S), np.arange(S))
-    from umi_aug.camera.kb import unproject
+    from umi_aug.camera.kb import unproject  # lazy, start-up: cv2
 
     _, in_lens = unproject(np.stack([uu.ravel(), vv.ravel()], -1).astype(np.float64), policy_intr)
     valid = in_lens.reshape(S, S) & ~assets.gripper_mask
@@ -191,10 +194,9 @@ def compare_with_ground_truth(session_dir: Path, dataset: Path, assets, n_frames
 
 def run_demo(cfg: DemoConfig, say: Callable[[str], None] = log.info) -> dict:
     """Run the demo; returns a summary dict (also written to ``out_dir/summary.json``)."""
+    # lazy, start-up: cv2, scipy, zarr
     from umi_aug.augment import AugmentConfig, SplatStageConfig, export, prepare_session
     from umi_aug.data import validate_replay_buffer
-    from umi_aug.demo import pictures
-    from umi_aug.errors import AugmentError
 
     t_all = time.perf_counter()
     out = Path(cfg.out_dir)
@@ -202,7 +204,6 @@ def run_demo(cfg: DemoConfig, say: Callable[[str], None] = log.info) -> dict:
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    from umi_aug.splat.warmup import start_background_compile
 
     start_background_compile()  # a cold numba cache: the 3DGS kernels compile beside the session's rendering
     session_dir, session_info = _session(cfg, say)

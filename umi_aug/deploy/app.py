@@ -27,6 +27,8 @@ from umi_aug.deploy.policies import ReachPolicy
 from umi_aug.deploy.recorder import EpisodeRecorder
 from umi_aug.deploy.runner import ObsSpec, PolicyRunner, Preflight, RunnerConfig
 from umi_aug.deploy.safety import SafetyLimits
+from umi_aug.deploy.sim_ur5e import (SimCameraConfig, SimFisheyeCamera, SimGripper, SimGripperConfig, SimUR5eRobot,
+                                     SimURConfig, base_pose_matrix)
 from umi_aug.deploy.ur_rtde import URConfig, URRTDERobot
 from umi_aug.deploy.wsg50 import WSG50Gripper, WSGConfig
 from umi_aug.errors import DeployError
@@ -53,6 +55,7 @@ def _build_policy(cfg: Mapping[str, Any], fps: float) -> tuple[Any, ObsSpec, flo
         return pol, ObsSpec(1, 2, 3), float(cfg.get("dt") or pol.dt)
     if kind == "checkpoint":
         ckpt = cfg.get("checkpoint")
+        # lazy, start-up: torch
         from umi_aug.policy.checkpoint import checkpoint_file_problem
         from umi_aug.policy.inference import Policy
 
@@ -80,9 +83,6 @@ def _build_backends(rc: Mapping[str, Any]) -> tuple[Any, Any, Any, list[Any], tu
         camera, gripper, robot = UVCCamera(cam_cfg), WSG50Gripper(wsg), URRTDERobot(ur)
         return camera, gripper, robot, [camera, gripper, robot], (ur, wsg, cam_cfg)
     if backend == "sim":
-        from umi_aug.deploy.sim_ur5e import (SimCameraConfig, SimFisheyeCamera, SimGripper, SimGripperConfig,
-                                             SimUR5eRobot, SimURConfig, base_pose_matrix)
-
         ur = SimURConfig.from_mapping(rc.get("robot") or {}, "robot.robot")
         grip_cfg = SimGripperConfig.from_mapping(rc.get("gripper") or {}, "robot.gripper")
         cam_cfg = SimCameraConfig.from_mapping(rc.get("camera") or {}, "robot.camera")

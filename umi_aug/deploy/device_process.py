@@ -13,6 +13,7 @@ loops call :func:`parent_alive` every period (a check that does not depend on th
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import multiprocessing as mp
 import os
@@ -21,6 +22,7 @@ import signal
 import time
 from typing import Any, Callable, Mapping
 
+from umi_aug.augment.executor import PR_SET_PDEATHSIG, die_with_parent
 from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
 from umi_aug.errors import DeployError
@@ -42,12 +44,8 @@ def child_setup(parent_pid: int, death_signal: int = signal.SIGKILL) -> None:
             decelerating to rest first (:func:`umi_aug.deploy.sim_arm.stop_on_signal`, with a SIGALRM backstop),
             as the real arm's own program does when ur-rtde's watchdog fires.
     """
-    from umi_aug.augment.executor import PR_SET_PDEATHSIG, die_with_parent
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if die_with_parent(parent_pid) and death_signal != signal.SIGKILL:
-        import ctypes
-
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(death_signal), 0, 0, 0)
         if os.getppid() != parent_pid:  # the runner died between the two prctl calls
             os._exit(1)

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from umi_aug.data import ReplayBuffer
+from umi_aug.data.video import VideoWriter
 from umi_aug.deploy.runner import CycleLog
 
 __all__ = ["EpisodeRecorder", "timing_stats"]
@@ -60,9 +62,6 @@ class EpisodeRecorder:
 
     def save(self, out_dir: str | Path, fps: float, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         """Write ``episode.zarr.zip``, ``episode.mp4``, ``tcp_commanded_vs_reached.png``, ``timing.json``."""
-        from umi_aug.data import ReplayBuffer
-        from umi_aug.data.video import VideoWriter
-
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         try:
@@ -93,10 +92,10 @@ class EpisodeRecorder:
         return stats
 
     def _plot(self, path: Path, rt: np.ndarray, rp: np.ndarray) -> None:
-        import matplotlib
+        import matplotlib  # lazy, start-up: matplotlib
 
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # lazy, start-up: matplotlib
 
         fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
         t0 = rt[0]

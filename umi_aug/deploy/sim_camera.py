@@ -32,6 +32,7 @@ from umi_aug.deploy.safety import SafetyStop
 from umi_aug.deploy.shared_state import SharedStateBuffer
 from umi_aug.errors import DeployError
 from umi_aug.geometry.se3 import pos_rotvec_to_pose
+from umi_aug.sim.gl import import_mujoco
 
 __all__ = ["SimCameraConfig", "SimFisheyeCamera"]
 
@@ -145,8 +146,6 @@ class SimFisheyeCamera:
         self.n_read = 0
 
     def start(self) -> None:
-        from umi_aug.sim.gl import import_mujoco
-
         import_mujoco()  # chooses MUJOCO_GL here, the render process inherits it
         self._q, self._errors, self._stop = self._ctx.Queue(), self._ctx.Queue(), self._ctx.Event()
         self._proc = self._ctx.Process(target=_camera_main, name="sim_camera", daemon=True,

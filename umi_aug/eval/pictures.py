@@ -24,10 +24,10 @@ def plot_init_success(path: str | Path, T_world_cam: np.ndarray, records: dict[i
         records: finished rollouts by configuration index.
         selected: configuration indices of this run.
     """
-    import matplotlib
+    import matplotlib  # lazy, start-up: matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy, start-up: matplotlib
 
     sel = np.asarray(list(selected), dtype=int)
     pos = T_world_cam[sel, :3, 3]

@@ -24,6 +24,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.console import Console
+from rich.table import Table
 from tqdm import tqdm
 
 from umi_aug.augment.executor import map_ordered, usable_cores
@@ -170,9 +172,6 @@ def _run_task(job: tuple[dict[str, Any], int, np.ndarray, int, dict | None]) -> 
 
 
 def _print_table(summary: dict[str, Any], title: str) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
     def pct(d: dict[str, Any]) -> str:
         lo, hi = d["wilson95"]
         return f"{100 * d['rate']:.1f} % ({d['count']}/{summary['n']})  [{100 * lo:.1f}, {100 * hi:.1f}]"

@@ -288,7 +288,7 @@ class ConvexPolytopeSDF:
     @classmethod
     def from_points(cls, points: np.ndarray) -> "ConvexPolytopeSDF":
         """Convex hull of a point cloud (``scipy.spatial.ConvexHull``; needs ≥ 4 non-coplanar points)."""
-        from scipy.spatial import ConvexHull, QhullError
+        from scipy.spatial import ConvexHull, QhullError  # lazy, start-up: scipy
 
         pts = as_float(points, "points", "ConvexPolytopeSDF.from_points", (3,)).reshape(-1, 3)
         try:

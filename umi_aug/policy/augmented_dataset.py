@@ -165,7 +165,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
     # ------------------------------------------------------------------ episodes
     def planned(self, demo_index: int, aug_id: int, mode: str):
         """The planned episode ``(demo, aug_id, mode)`` (cached per process, LRU), or None if planning failed."""
-        from umi_aug.augment import plan_episode
+        from umi_aug.augment import plan_episode  # lazy, start-up: cv2, scipy
 
         key = (int(demo_index), int(aug_id), mode)
         if key in self._plans:
@@ -247,7 +247,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         if "frames" in self.fast_paths:
             frames = sample_frames(handle, planned, uniq, self.timings)[inv]
         else:
-            from umi_aug.augment import render_episode_frames
+            from umi_aug.augment import render_episode_frames  # lazy, start-up: cv2
 
             frames = render_episode_frames(handle, planned, uniq)[inv]
             t0 = self._tick("frames", t0)

@@ -26,6 +26,9 @@ from typing import Any
 
 import numpy as np
 
+from umi_aug.errors import AugmentError
+from umi_aug.io_utils import atomic_path
+
 __all__ = ["FAST_PATHS", "PlanDiskCache", "plan_code_fingerprint", "plan_cache_key", "read_rows",
            "composite_band", "sample_frames"]
 
@@ -75,7 +78,7 @@ def _array_sha(*arrays: Any) -> str:
 def plan_cache_key(handle: Any, demo_index: int) -> str:
     """Content key of the plans of demo ``demo_index`` on ``handle`` (a :class:`SessionAssets` serving the demo:
     ``assets.for_demo(d)``): SDF bytes, demo arrays + splice frame, render views, planning config, code."""
-    from umi_aug.augment.config import config_hash
+    from umi_aug.augment.config import config_hash  # lazy, start-up: cv2, scipy
 
     cfg = handle.cfg
     d = handle.demos[int(demo_index)]
@@ -111,7 +114,7 @@ class PlanDiskCache:
 
     @staticmethod
     def _ident(handle: Any, demo_index: int, aug_id: int, mode: str) -> tuple:
-        from umi_aug.augment.plan import episode_seed
+        from umi_aug.augment.plan import episode_seed  # lazy, start-up: cv2, scipy
 
         return (int(demo_index), int(aug_id), str(mode), episode_seed(handle.cfg.seed, demo_index, aug_id, mode))
 
@@ -132,8 +135,6 @@ class PlanDiskCache:
         return True, rec["planned"]
 
     def save(self, handle: Any, demo_index: int, aug_id: int, mode: str, planned: Any) -> None:
-        from umi_aug.io_utils import atomic_path
-
         p = self.path(handle, demo_index, aug_id, mode)
         rec = {"ident": self._ident(handle, demo_index, aug_id, mode), "planned": planned}
         try:
@@ -173,7 +174,7 @@ def _band(alpha_bytes: bytes, shape: tuple[int, int]) -> tuple[np.ndarray, np.nd
 def composite_band(rendered: np.ndarray, original: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     """:func:`umi_aug.augment.overlay.composite_overlay` (same bytes) computed only where ``0 < alpha < 1``:
     ``original`` where alpha ≥ 1, ``rendered`` where alpha ≤ 0 (NaN alpha: neither, so the reference is used)."""
-    from umi_aug.augment.overlay import composite_overlay
+    from umi_aug.augment.overlay import composite_overlay  # lazy, start-up: cv2
 
     a32 = np.ascontiguousarray(alpha, dtype=np.float32)
     r, o = np.asarray(rendered), np.asarray(original)
@@ -195,8 +196,7 @@ def sample_frames(handle: Any, planned: Any, frame_indices: np.ndarray, timings:
     """:func:`umi_aug.augment.render_episode_frames` ``(handle, planned, frame_indices)`` (same pixels) for a
     sample's few frames: originals decoded alone (:func:`read_rows`), band-only overlay (:func:`composite_band`).
     Obstacle episodes go to the reference. ``timings`` (seconds) accumulates ``decode``, ``render``, ``overlay``."""
-    from umi_aug.augment.render import overlay_sources, render_episode_frames, render_view
-    from umi_aug.errors import AugmentError
+    from umi_aug.augment.render import overlay_sources, render_episode_frames, render_view  # lazy, start-up: cv2
 
     t = timings if timings is not None else {}
     idx = np.asarray(frame_indices, dtype=np.int64).reshape(-1)

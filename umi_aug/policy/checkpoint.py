@@ -14,6 +14,7 @@ checkpoint never runs code when loaded. The normaliser is inside ``model`` (it i
 from __future__ import annotations
 
 import os
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -52,8 +53,6 @@ def checkpoint_file_problem(path: str | os.PathLike) -> str | None:
 
 def _unreadable_why(path: Path, exc: Exception) -> str:
     """A short reason ``torch.load`` failed on ``path``, without torch's advice about ``weights_only``."""
-    import zipfile
-
     with open(path, "rb") as f:
         head = f.read(4096)
     if not head:

@@ -363,6 +363,7 @@ def structured_config(overrides: Any = None) -> TrainConfig:
     Raises:
         PolicyError: unknown key or wrong type (OmegaConf's message included).
     """
+    # lazy, optional dependency: omegaconf
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
@@ -377,6 +378,6 @@ def structured_config(overrides: Any = None) -> TrainConfig:
 
 def config_to_dict(cfg: TrainConfig) -> dict:
     """Plain nested dict of ``cfg`` (for checkpoints and logs)."""
-    from omegaconf import OmegaConf
+    from omegaconf import OmegaConf  # lazy, optional dependency: omegaconf
 
     return OmegaConf.to_container(OmegaConf.structured(cfg), resolve=True)  # type: ignore[return-value]

@@ -27,7 +27,9 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
+from umi_aug.data import ReplayBuffer
 from umi_aug.data.schema import SAMPLE_STEP_KEY
 from umi_aug.errors import DatasetError, PolicyError
 from umi_aug.geometry import pos_rotvec_to_pose
@@ -177,8 +179,6 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
 
     def __init__(self, dataset_path: str | os.PathLike, task: TaskConfig, split: str = "train",
                  start_pose_noise: float | None = None) -> None:
-        from umi_aug.data import ReplayBuffer
-
         if split not in ("train", "val", "all"):
             raise PolicyError(f"UmiPolicyDataset: split must be 'train', 'val' or 'all', got {split!r}")
         self.path = str(dataset_path)
@@ -311,8 +311,6 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
 
     def _buffer(self):
         if self._buf is None or self._pid != os.getpid():
-            from umi_aug.data import ReplayBuffer
-
             self._buf = ReplayBuffer.open(self.path, check_values=False)
             self._pid = os.getpid()
         return self._buf
@@ -335,7 +333,6 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
             return True
         if max_gb <= 0 or self.frames_nbytes() > max_gb * 1e9:
             return False
-        from tqdm.auto import tqdm
 
         frames: dict[str, np.ndarray] = {}
         buf = self._buffer()

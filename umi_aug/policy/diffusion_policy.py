@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+from dataclasses import asdict
 from typing import Any, Mapping
 
 import torch
@@ -27,8 +28,6 @@ __all__ = ["DiffusionUnetPolicy", "build_noise_scheduler"]
 
 def build_noise_scheduler(cfg: SchedulerConfig):
     """Instantiate the diffusers scheduler named by ``cfg._target_`` with the kwargs it accepts."""
-    from dataclasses import asdict
-
     target = cfg._target_
     mod_name, _, cls_name = target.rpartition(".")
     if mod_name not in ("diffusers", "diffusers.schedulers") or not cls_name.endswith("Scheduler"):

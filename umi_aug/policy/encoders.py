@@ -54,7 +54,7 @@ def load_weights_file(path: str | Path) -> dict[str, torch.Tensor]:
     if not path.is_file():
         raise PolicyError(f"policy.encoder.pretrained_path: {path} is not a file or folder")
     if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
+        from safetensors.torch import load_file  # lazy, optional dependency: safetensors
 
         return load_file(str(path))
     try:
@@ -147,6 +147,7 @@ class ClipVitBackbone(nn.Module):
 
     def __init__(self, cfg: EncoderConfig, image_size: int, rgb_key: str = "") -> None:
         super().__init__()
+        # lazy, optional dependency: transformers
         import transformers
         from transformers import CLIPVisionConfig, CLIPVisionModel
 

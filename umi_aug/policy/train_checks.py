@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from umi_aug.errors import PolicyError
+from umi_aug.io_utils import atomic_path
 
 __all__ = ["check_train_values", "prepare_run_folder"]
 
@@ -90,7 +91,7 @@ def _read_steps(logs: Path) -> list[int | None]:
 
 def _checkpoint_step(ckpt: Path) -> int:
     """``global_step`` of a training checkpoint (memory-mapped: the weights are not read)."""
-    import torch
+    import torch  # lazy, start-up: torch
 
     try:
         payload = torch.load(str(ckpt), map_location="cpu", weights_only=True, mmap=True)
@@ -138,7 +139,6 @@ def prepare_run_folder(output_dir: str | os.PathLike, ckpt_path: str | os.PathLi
             f.seek(-1, os.SEEK_END)
             if f.read(1) == b"\n":
                 return None
-    from umi_aug.io_utils import atomic_path
 
     kept, dropped = [], []
     with open(logs, encoding="utf-8") as f:

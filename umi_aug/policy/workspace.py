@@ -31,8 +31,9 @@ import numpy as np
 import torch
 
 from umi_aug.errors import PolicyError
+from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
 from umi_aug.policy.checkpoint import load_checkpoint, save_checkpoint
-from umi_aug.policy.config import TrainConfig, check_aug, check_config, config_to_dict, structured_config
+from umi_aug.policy.config import AUG_MODES, TrainConfig, check_aug, check_config, config_to_dict, structured_config
 from umi_aug.policy.dataset import UmiPolicyDataset
 from umi_aug.policy.chunk_policy import ChunkPolicy
 from umi_aug.policy.ema import EMA
@@ -48,9 +49,7 @@ log = logging.getLogger(__name__)
 def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: TrainConfig):
     """``aug=freespace|obstacle|both``: prepare the session holding ``dataset_path`` (cached stages) and wrap the
     original training split in an :class:`~umi_aug.policy.augmented_dataset.AugmentedUmiDataset`."""
-    from umi_aug.augment import AugmentConfig, SplatStageConfig, prepare_session
-    from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
-    from umi_aug.policy.config import AUG_MODES
+    from umi_aug.augment import AugmentConfig, SplatStageConfig, prepare_session  # lazy, start-up: cv2, scipy
 
     a = cfg.aug
     session = Path(a.session_dir).absolute() if a.session_dir else dataset_path.parent
@@ -69,7 +68,7 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
                          image_size=cfg.task.image_size,
                          splat=SplatStageConfig(iterations=a.splat_iterations, max_gaussians=a.splat_max_gaussians))
     if plain:
-        from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset
+        from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset  # lazy, start-up: cv2, scipy
 
         # lazily: a scene group is built (or read from its cache) by the first process that samples one of its
         # episodes (the normaliser fit here, then the DataLoader workers), so training starts at once and the

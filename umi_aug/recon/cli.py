@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 __all__ = ["add_reconstruct_parser", "cmd_reconstruct"]
 
@@ -26,8 +27,6 @@ def add_reconstruct_parser(sub: "argparse._SubParsersAction") -> argparse.Argume
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from umi_aug.errors import ReconError
     from umi_aug.recon.pipeline import ReconConfig, reconstruct_session
     from umi_aug.recon.sfm import SfmConfig

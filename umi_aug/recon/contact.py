@@ -23,6 +23,7 @@ from typing import Callable, Literal, Sequence
 import numpy as np
 
 from umi_aug.errors import ReconError
+from umi_aug.geometry.gripper import umi_gripper_spheres
 from umi_aug.geometry.sdf import SignedDistanceField, check_sdf_output
 from umi_aug.recon import constants as C
 
@@ -32,8 +33,6 @@ ContactRule = Literal["proximity", "proximity+grasp"]
 
 
 def _default_spheres(width: float):
-    from umi_aug.geometry.gripper import umi_gripper_spheres
-
     return umi_gripper_spheres(float(np.clip(width, 0.0, 0.3)))
 
 

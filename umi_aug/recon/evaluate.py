@@ -11,6 +11,8 @@ import numpy as np
 
 from umi_aug.geometry.sdf import SignedDistanceField
 from umi_aug.recon.cloud import SceneCloud
+from umi_aug.recon.constants import SDF_SIGN_NEIGHBOURS
+from umi_aug.recon.sdf_grid import sign_vote
 
 __all__ = ["cloud_metrics", "pose_metrics", "sdf_metrics", "in_box"]
 
@@ -29,7 +31,7 @@ def cloud_metrics(recon: np.ndarray, gt_points: np.ndarray, gt_normals: np.ndarr
     ``within_1cm_pct`` / ``within_2cm_pct`` (% of GT points with a reconstructed point that close), ``chamfer_mm``
     (mean of the two point-to-point means), ``n_recon``, ``n_gt``.
     """
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # lazy, start-up: scipy
 
     R = np.asarray(recon, np.float64).reshape(-1, 3)
     G = np.asarray(gt_points, np.float64).reshape(-1, 3)
@@ -74,10 +76,7 @@ def sdf_metrics(sdf: SignedDistanceField, gt_cloud: SceneCloud, queries: np.ndar
     conservative), ``false_free_pct`` (grid > 0 where GT < 0: dangerous), ``false_occupied_pct`` (grid < 0 where
     GT > 0: conservative), ``lower_bound_pct`` (% of GT-free queries where grid ≤ GT).
     """
-    from scipy.spatial import cKDTree
-
-    from umi_aug.recon.constants import SDF_SIGN_NEIGHBOURS
-    from umi_aug.recon.sdf_grid import sign_vote
+    from scipy.spatial import cKDTree  # lazy, start-up: scipy
 
     q = np.asarray(queries, np.float64).reshape(-1, 3)
     d, idx = cKDTree(gt_cloud.points).query(q, k=SDF_SIGN_NEIGHBOURS)

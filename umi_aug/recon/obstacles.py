@@ -25,6 +25,8 @@ from typing import Callable
 import numpy as np
 
 from umi_aug.errors import ReconError
+from umi_aug.geometry.gripper import umi_gripper_spheres
+from umi_aug.geometry.interp import interpolate_pose
 from umi_aug.geometry.sdf import ConvexPolytopeSDF, SignedDistanceField
 from umi_aug.recon import constants as C
 
@@ -196,10 +198,8 @@ def sample_obstacle_placement(asset: ObstacleAsset, T_world_cam: np.ndarray, gri
         ReconError: no valid placement within ``max_tries`` (the approach is too short / too high for this
             asset, or the tail is too long): try a taller/larger asset or another demo.
     """
-    from umi_aug.geometry.interp import interpolate_pose
-
     if spheres_fn is None:
-        from umi_aug.geometry.gripper import umi_gripper_spheres as spheres_fn
+        spheres_fn = umi_gripper_spheres
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(int(rng))
     T = np.asarray(T_world_cam, np.float64)
     w = np.asarray(gripper_width, np.float64).reshape(-1)

@@ -273,7 +273,7 @@ def build_scene_sdf(cloud: SceneCloud, lo: np.ndarray, hi: np.ndarray, voxel: fl
     Raises:
         ReconError: empty/tiny cloud, bad region, too many nodes.
     """
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # lazy, start-up: scipy
 
     cloud.check("build_scene_sdf")
     lo = np.asarray(lo, np.float64).reshape(3)

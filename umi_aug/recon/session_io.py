@@ -31,16 +31,19 @@ import dataclasses
 import json
 import logging
 import os
+import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Sequence
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from umi_aug.camera.calib_io import load_umi_intrinsics_json
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import ReconError, UmiAugError
+from umi_aug.geometry.umi import UMI_TCP_OFFSET, umi_T_cam_tcp
 
 __all__ = ["ImageSequence", "SessionData", "load_session", "check_image_sizes", "write_frames", "IMAGE_EXTENSIONS",
            "VIDEO_NAME"]
@@ -119,7 +122,7 @@ class ImageSequence:
         """Yield ``(k, rgb [h, w, 3] uint8)`` for the increasing frame indices ``indices``; ``size = (w, h)``: full-
         height centre crop + area resize (intrinsics ``FisheyeIntrinsics.scaled(w, h)``), None = stored size.
         Videos are decoded once, sequentially, keeping only these frames."""
-        from umi_aug.data.video import centre_crop, iter_video_frames
+        from umi_aug.data.video import centre_crop, iter_video_frames  # lazy, start-up: zarr
 
         idx = self._indices(indices)
         if self.image_paths is None:
@@ -150,7 +153,7 @@ class ImageSequence:
         tags = None if self.tag_corners is None else self.tag_corners.get(int(video_frame))
         if not tags:
             return img
-        from umi_aug.data.video import centre_crop, inpaint_tag
+        from umi_aug.data.video import centre_crop, inpaint_tag  # lazy, start-up: zarr
 
         h, w = img.shape[:2]
         W, H = self.frame_size
@@ -183,8 +186,6 @@ class ImageSequence:
         out = np.empty((len(idx), h, w, 3), dtype=np.uint8)
         it = self.iter_frames(idx, size)
         if progress:
-            from tqdm import tqdm
-
             it = tqdm(it, total=len(idx), desc=f"decode {self.name}", unit="frame")
         for j, (_, img) in enumerate(it):
             out[j] = img
@@ -241,7 +242,7 @@ def _tx_slam_tag(root: Path) -> np.ndarray:
 
 def _sequence(folder: Path, name: str, csv: Path, T_tag_slam: np.ndarray) -> ImageSequence:
     """The frames (video, else old-layout images/) and the trajectory of one sequence folder."""
-    from umi_aug.data.video import probe_video
+    from umi_aug.data.video import probe_video  # lazy, start-up: zarr
 
     video = folder / VIDEO_NAME
     if video.exists():
@@ -265,7 +266,7 @@ def _sequence(folder: Path, name: str, csv: Path, T_tag_slam: np.ndarray) -> Ima
     _trajectory(seq, csv, T_tag_slam)
     tags = folder / TAG_DETECTIONS_NAME
     if tags.is_file():
-        from umi_aug.data.video import read_tag_detections
+        from umi_aug.data.video import read_tag_detections  # lazy, start-up: zarr
 
         try:
             seq.tag_corners = read_tag_detections(tags)
@@ -277,7 +278,7 @@ def _sequence(folder: Path, name: str, csv: Path, T_tag_slam: np.ndarray) -> Ima
 
 def _trajectory(seq: ImageSequence, csv: Path, T_tag_slam: np.ndarray) -> None:
     """Fill ``seq``'s poses from ``csv`` (rows aligned to video frames by ``frame_idx``; lost rows invalid)."""
-    from umi_aug.data import read_camera_trajectory_csv
+    from umi_aug.data import read_camera_trajectory_csv  # lazy, start-up: zarr
 
     if not csv.is_file():
         return
@@ -336,7 +337,7 @@ class _Episodes:
 def _read_episodes(zp: Path) -> _Episodes | None:
     """The dataset's episode lengths, widths and TCP poses; None when it cannot be read (the augment preflight
     reports the dataset's own problems)."""
-    from umi_aug.data import ReplayBuffer
+    from umi_aug.data import ReplayBuffer  # lazy, start-up: zarr
 
     try:
         with ReplayBuffer.open(zp) as buf:
@@ -355,7 +356,7 @@ def _read_episodes(zp: Path) -> _Episodes | None:
 
 def _segment_error(ep: _Episodes, e: int, T_world_tcp: np.ndarray) -> tuple[float, float]:
     """(max position error m, max rotation error rad) of episode ``e`` against TCP poses ``[L, 4, 4]``."""
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # lazy, start-up: scipy
 
     a = int(ep.starts()[e])
     sl = slice(a, a + int(ep.lengths[e]))
@@ -368,8 +369,6 @@ def _segment_error(ep: _Episodes, e: int, T_world_tcp: np.ndarray) -> tuple[floa
 
 
 def _tcp_poses(demos: list[ImageSequence]) -> dict[int, np.ndarray]:
-    from umi_aug.geometry.umi import umi_T_cam_tcp
-
     T_cam_tcp = umi_T_cam_tcp()
     return {i: d.T_world_cam @ T_cam_tcp for i, d in enumerate(demos) if d.T_world_cam is not None}
 
@@ -377,8 +376,6 @@ def _tcp_poses(demos: list[ImageSequence]) -> dict[int, np.ndarray]:
 def _segments_from_plan(root: Path, ep: _Episodes, demos: list[ImageSequence]) -> list[tuple[int, int]]:
     """``(demo, start frame)`` per episode from UMI's ``dataset_plan.pkl`` (``cameras[0].video_start_end``),
     checked against the videos, the tracking and (when the dataset has them) the TCP poses."""
-    import pickle
-
     p = root / PLAN_NAME
     try:
         with open(p, "rb") as f:
@@ -472,8 +469,6 @@ def _segments_by_tcp(ep: _Episodes, demos: list[ImageSequence]) -> list[tuple[in
 
 
 def _tcp_offset() -> float:
-    from umi_aug.geometry.umi import UMI_TCP_OFFSET
-
     return float(UMI_TCP_OFFSET)
 
 

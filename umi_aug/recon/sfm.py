@@ -33,6 +33,8 @@ from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.camera.masks import predefined_mask
 from umi_aug.errors import ReconError
 from umi_aug.recon import constants as C
+from umi_aug.recon.session_io import check_image_sizes
+from umi_aug.runtime import restore_python_signal_handlers
 
 __all__ = ["SfmConfig", "SfmResult", "run_sfm", "colmap_camera_params", "feature_mask", "video_pairs",
            "pose_pairs"]
@@ -48,7 +50,6 @@ def _pycolmap():
     except ImportError as exc:  # pragma: no cover - recon extra
         raise ReconError("structure from motion needs pycolmap: pip install 'umi-aug[recon]' "
                          "(pycolmap==4.2.1)") from exc
-    from umi_aug.runtime import restore_python_signal_handlers
 
     restore_python_signal_handlers()  # glog's SIGTERM handler printed 21 native frames instead of our one line
     # COLMAP's glog INFO/WARNING lines stay out of the user's console unless they ask for them (DEBUG logging of
@@ -214,7 +215,7 @@ def pose_pairs(T_world_cam: np.ndarray, valid: np.ndarray, max_dist_m: float, ma
     """
     if max_dist_m <= 0 or max_angle_deg <= 0:
         return np.zeros((0, 2), dtype=np.int64)
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # lazy, start-up: scipy
 
     idx = np.flatnonzero(valid)
     if len(idx) < 2:
@@ -384,8 +385,6 @@ def run_sfm(image_paths: Sequence[str | os.PathLike], names: Sequence[str], intr
         ReconError: a frame's size differs from the intrinsics; known poses missing; COLMAP registers fewer than
             ``min_registered_fraction`` of the frames (or no model at all); too few 3-D points.
     """
-    from umi_aug.recon.session_io import check_image_sizes
-
     pc = _pycolmap()
     cfg = config or SfmConfig()
     paths = [Path(p) for p in image_paths]

@@ -27,6 +27,7 @@ from umi_aug.errors import SimError
 from umi_aug.geometry import make_pose, matrix_to_quat_wxyz
 from umi_aug.io_utils import atomic_write_bytes, atomic_write_text
 from umi_aug.sim.camera_frames import CV_TO_MJ_CAMERA_AXES
+from umi_aug.sim.gl import import_mujoco
 from umi_aug.sim.textures import aruco_texture, encode_png, random_dot_texture
 
 __all__ = [
@@ -200,8 +201,6 @@ class TabletopScene:
 
     def compile(self):
         """Compile to a ``mujoco.MjModel`` (chooses the GL backend first, see :mod:`umi_aug.sim.gl`)."""
-        from umi_aug.sim.gl import import_mujoco
-
         mujoco = import_mujoco()
         try:
             return mujoco.MjModel.from_xml_string(self.xml, self.assets)

@@ -36,7 +36,10 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import numcodecs
 import numpy as np
+import zarr
+from tqdm import tqdm
 
 from umi_aug.camera.calib_io import gopro_intrinsics_2_7k, save_umi_intrinsics_json
 from umi_aug.camera.umi_image import umi_policy_image
@@ -48,6 +51,7 @@ from umi_aug.geometry.umi import umi_T_cam_tcp
 from umi_aug.io_utils import atomic_path
 from umi_aug.sim.bench import benchmark_fisheye_render
 from umi_aug.sim.fisheye_renderer import FisheyeRenderer
+from umi_aug.sim.gl import import_mujoco
 from umi_aug.sim.pointcloud import sample_geom_points, write_ply
 from umi_aug.sim.raster import RasterOptions
 from umi_aug.sim.scene import SCENE_FAR, SCENE_NEAR, build_tabletop_scene
@@ -213,9 +217,6 @@ def _render_sequence(
 def _write_frames_gt(path: Path, depth_q: np.ndarray, grip: np.ndarray) -> None:
     """Per-frame ground truth as a zarr ZipStore: ``ray_depth_q`` uint16 (T, H, W) in units of
     :data:`DEPTH_SCALE_M` (0 = no valid hit) and ``gripper_mask`` bool (T, H, W); Blosc zstd + bit-shuffle."""
-    import numcodecs
-    import zarr
-
     cpr = numcodecs.Blosc(cname="zstd", clevel=5, shuffle=numcodecs.Blosc.BITSHUFFLE)
     store = zarr.ZipStore(str(path), mode="w")
     try:
@@ -232,8 +233,6 @@ def _write_frames_gt(path: Path, depth_q: np.ndarray, grip: np.ndarray) -> None:
 
 
 def _open_frames_gt(path: str | os.PathLike):
-    import zarr
-
     path = Path(path)
     if path.is_dir():
         path = path / FRAMES_GT_NAME
@@ -273,7 +272,7 @@ def _label(img: np.ndarray, text: str) -> np.ndarray:
 
 
 def _depth_vis(depth: np.ndarray, max_m: float = 2.0) -> np.ndarray:
-    import matplotlib
+    import matplotlib  # lazy, start-up: matplotlib
 
     cmap = matplotlib.colormaps["turbo"]
     d = np.clip(depth / max_m, 0.0, 1.0)
@@ -353,8 +352,6 @@ def make_session(out_dir: str | os.PathLike, seed: int = 0, config: SessionConfi
 
     pbar = None
     if cfg.progress:
-        from tqdm import tqdm
-
         pbar = tqdm(total=n_total, desc=f"make-session seed {cfg.seed}", unit="frame")
     summary: dict[str, Any] = {}
     try:
@@ -467,8 +464,6 @@ def make_session(out_dir: str | os.PathLike, seed: int = 0, config: SessionConfi
 
 def _scene_points(model, state: TabletopState, rng: np.random.Generator) -> dict[str, np.ndarray]:
     """Ground-truth point cloud of the static scene (everything but the gripper) at the initial state."""
-    from umi_aug.sim.gl import import_mujoco
-
     mujoco = import_mujoco()
     grip = set(state.gripper_geom_ids.tolist())
     ids = [g for g in range(model.ngeom) if g not in grip]

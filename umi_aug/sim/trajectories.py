@@ -17,7 +17,7 @@ from umi_aug.errors import SimError
 from umi_aug.geometry import make_pose, so3_exp
 from umi_aug.geometry.cone import look_at_rotation
 from umi_aug.geometry.interp import interpolate_pose
-from umi_aug.geometry.umi import camera_poses_from_tcp_poses, tcp_poses_from_camera_poses
+from umi_aug.geometry.umi import camera_poses_from_tcp_poses, tcp_poses_from_camera_poses, umi_T_cam_tcp
 from umi_aug.sim.scene import OBJECT_REGION, SceneLayout
 
 __all__ = ["UMI_FPS", "min_jerk", "scan_trajectory", "DemoPlan", "plan_demo"]
@@ -157,8 +157,6 @@ def plan_demo(layout: SceneLayout, rng: np.random.Generator, fps: float = UMI_FP
     Returns:
         :class:`DemoPlan`.
     """
-    from umi_aug.geometry.umi import umi_T_cam_tcp
-
     T_cam_tcp = umi_T_cam_tcp() if T_cam_tcp is None else np.asarray(T_cam_tcp, dtype=np.float64)
     mug = layout.mug
     T_grasp = layout.T_world_grasp

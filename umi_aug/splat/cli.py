@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 
 __all__ = ["add_train_splat_parser", "cmd_train_splat"]
 
@@ -34,8 +35,6 @@ def add_train_splat_parser(sub: "argparse._SubParsersAction") -> argparse.Argume
 
 
 def cmd_train_splat(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
     from umi_aug.errors import SplatError
     from umi_aug.splat.train import SplatTrainConfig
     from umi_aug.splat.train_session import train_splat_from_session

@@ -35,6 +35,7 @@ import torch
 
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import SplatError
+from umi_aug.geometry.se3_torch import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from umi_aug.io_utils import atomic_path
 from umi_aug.splat._constants import DEFAULT_FAR, DEFAULT_FILTER, DEFAULT_NEAR, SH_COEFFS
 from umi_aug.splat.gaussians import Gaussians
@@ -160,8 +161,6 @@ def transform_gaussians(gaussians: Gaussians, T_world_obj: np.ndarray) -> Gaussi
         gaussians: set in its object frame.
         T_world_obj: np.ndarray,  # [4, 4] rigid
     """
-    from umi_aug.geometry.se3_torch import matrix_to_quat_wxyz, quat_wxyz_to_matrix
-
     T = _as_pose64(T_world_obj, "T_world_obj")
     g = gaussians.detach().to(torch.float64)
     R = torch.as_tensor(T[:3, :3])
@@ -225,6 +224,7 @@ def render_composed(
         ``[scene, obstacle 0, obstacle 1, ...]`` (the reference's rows), ``meta["parts"]`` lists per set its key,
         size and visible count.
     """
+    # lazy, start-up: numba, scipy
     from umi_aug.splat.renderer import (RenderOutput, _background, bin_gaussians, compose_background_numpy,
                                         project_numba, rasterize_packed)
 

@@ -233,7 +233,7 @@ def render_gsplat(
     Raises:
         SplatError: gsplat missing, no CUDA, or gsplat failed (its message included).
     """
-    from umi_aug.splat.renderer import RenderOutput, _background
+    from umi_aug.splat.renderer import RenderOutput, _background  # lazy, start-up: numba, scipy
 
     ok, why = gsplat_available()
     if not ok:
@@ -274,7 +274,7 @@ def render_with_backend(
     """The one backend switch: ``"cpu"`` -> :func:`umi_aug.splat.render` (default, reference), ``"gsplat"`` ->
     :func:`render_gsplat` (CUDA only). ``kwargs`` go to the chosen renderer."""
     if backend == "cpu":
-        from umi_aug.splat.renderer import render
+        from umi_aug.splat.renderer import render  # lazy, start-up: numba, scipy
 
         return render(gaussians, T_world_cam, intr, background, sh_degree, **kwargs)
     if backend == "gsplat":

@@ -36,12 +36,14 @@ import numpy as np
 import torch
 
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
+from umi_aug.camera.kb import unproject
 from umi_aug.errors import SimError, SplatError
 from umi_aug.geometry import matrix_to_quat_wxyz
 from umi_aug.splat.gaussians import Gaussians
 from umi_aug.splat.ply import read_ply, write_ply
 from umi_aug.splat.scenes import _frame_from_normal, look_at_pose
 from umi_aug.splat.sh import rgb_to_sh
+from umi_aug.splat.train import SplatTrainConfig, TrainView, train_splat
 
 if TYPE_CHECKING:  # pragma: no cover
     from umi_aug.recon.obstacles import ObstacleAsset
@@ -143,7 +145,7 @@ def init_obstacle_gaussians(
     random in-plane angle. Scales: tangent ``tangent_scale * sqrt(area / n)``, normal ``normal_scale`` x that.
     Colour: :func:`asset_colours` (DC only; higher SH zero). Opacity: ``config.opacity``.
     """
-    import trimesh
+    import trimesh  # lazy, optional dependency: trimesh
 
     cfg = config or ObstacleGaussianConfig()
     cfg.check()
@@ -254,8 +256,6 @@ def render_orbit_views(
 
 
 def _fit(asset: "ObstacleAsset", init: Gaussians, cfg: ObstacleGaussianConfig, n: int, seed: int) -> Gaussians:
-    from umi_aug.splat.train import SplatTrainConfig, TrainView, train_splat
-
     intr = orbit_intrinsics(cfg)
     poses = orbit_poses(asset, cfg)
     rgb = (init.sh0.double() * 0.28209479177387814 + 0.5).clamp(0, 1).mean(0).numpy()
@@ -277,8 +277,6 @@ def _fit(asset: "ObstacleAsset", init: Gaussians, cfg: ObstacleGaussianConfig, n
 
 def orbit_valid_mask(intr: FisheyeIntrinsics) -> np.ndarray:
     """``[H, W]`` bool: pixels inside the lens's image circle."""
-    from umi_aug.camera.kb import unproject
-
     vv, uu = np.mgrid[0 : intr.height, 0 : intr.width]
     _, ok = unproject(np.stack([uu, vv], axis=-1).astype(np.float64), intr)
     return ok

@@ -15,6 +15,7 @@ was composited).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any, Literal, Sequence
@@ -168,8 +169,6 @@ def restrict_binning(binning: Binning, tiles: np.ndarray) -> Binning:
     """``binning`` with only the intersections of the ``tiles [tiles_y, tiles_x]`` (bool) kept: rasterising it gives
     exactly the full render's values in those tiles (each tile is composited on its own) and nothing elsewhere
     (transmittance 1). Forward only: the result has no ``pos_of_isect`` for the backward."""
-    import dataclasses
-
     keep = np.asarray(tiles, dtype=bool)
     if keep.shape != (binning.tiles_y, binning.tiles_x):
         raise SplatError(f"tiles: expected a bool mask of shape {(binning.tiles_y, binning.tiles_x)} "

@@ -30,6 +30,7 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import SplatError
@@ -39,6 +40,7 @@ from umi_aug.splat.gaussians import Gaussians
 from umi_aug.splat.losses import masked_psnr, masked_ssim, photometric_loss
 from umi_aug.splat.optim import GaussianAdam
 from umi_aug.splat.ply import write_ply
+from umi_aug.splat.train_report import config_dict, write_outputs
 
 __all__ = [
     "SplatTrainConfig", "TrainView", "SplatTrainResult", "train_splat",
@@ -215,7 +217,7 @@ def init_gaussians(xyz: np.ndarray, rgb: np.ndarray | None, cfg: SplatTrainConfi
                    rng: np.random.Generator) -> Gaussians:
     """Isotropic Gaussians at ``xyz [N, 3]`` (world, metres) with colours ``rgb [N, 3]`` in [0, 1] (random when
     None), scale = ``cfg.init_scale`` x RMS distance to the 3 nearest points (at least ``1e-4 scale_ref``)."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # lazy, start-up: scipy
 
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) < 1 or not np.isfinite(xyz).all():
@@ -278,7 +280,7 @@ def _lrs(cfg: SplatTrainConfig, step: int, scale: float) -> dict[str, float]:
 
 
 def _render(g: Gaussians, data: _Data, i: int, intr: FisheyeIntrinsics, cfg: SplatTrainConfig, deg: int):
-    from umi_aug.splat.renderer import render
+    from umi_aug.splat.renderer import render  # lazy, start-up: numba, scipy
 
     return render(g, data.poses[i], intr, torch.tensor(cfg.background, dtype=torch.float32), deg,
                   filter=cfg.filter)
@@ -298,8 +300,6 @@ def _evaluate(g: Gaussians, data: _Data, idx: Sequence[int], intr, cfg, deg) -> 
 
 
 def _cfg_dict(cfg: SplatTrainConfig) -> dict[str, Any]:
-    from umi_aug.splat.train_report import config_dict
-
     return config_dict(cfg)
 
 
@@ -440,8 +440,6 @@ def train_splat(
         history.append(evaluate(0, float("nan")))
     pbar = None
     if progress and end > start:
-        from tqdm import tqdm
-
         pbar = tqdm(total=cfg.iterations, initial=start, desc="train-splat", unit="it")
     bg = torch.tensor(cfg.background, dtype=torch.float32)
     try:
@@ -508,8 +506,6 @@ def train_splat(
     last = history[-1]
     result = SplatTrainResult(g_final, out, None, last["heldout_psnr"], last["heldout_ssim"], history, timings)
     if out is not None and end >= cfg.iterations:
-        from umi_aug.splat.train_report import write_outputs
-
         if start >= cfg.iterations:  # finished checkpoint without metrics.json: evaluate once more
             history.append(evaluate(cfg.iterations, float("nan")))
             result.heldout_psnr, result.heldout_ssim = history[-1]["heldout_psnr"], history[-1]["heldout_ssim"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -51,10 +52,10 @@ def contact_sheet(rows: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], pat
 
 def plot_curve(history: Sequence[dict], path: Path) -> Path:
     """PSNR and SSIM (held-out, train) against iteration and training seconds."""
-    import matplotlib
+    import matplotlib  # lazy, start-up: matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy, start-up: matplotlib
 
     fig, axes = plt.subplots(2, 2, figsize=(10, 7))
     it = [h["iteration"] for h in history]
@@ -80,8 +81,6 @@ def config_dict(cfg: Any) -> dict:
     """The trainer config (:class:`umi_aug.splat.train.SplatTrainConfig`) as a JSON-ready dict (tuples as lists):
     stored in checkpoints and ``metrics.json``. (This module takes the trainer's objects duck-typed, so that it
     does not import the trainer that calls it.)"""
-    from dataclasses import asdict
-
     d = asdict(cfg)
     d["background"] = list(cfg.background)
     return d
@@ -94,7 +93,7 @@ def write_outputs(out: Path, result: Any, cfg: Any, intr, data: Any,
 
     ``result``: :class:`umi_aug.splat.train.SplatTrainResult`; ``cfg``: its ``SplatTrainConfig``; ``data``: the
     trainer's views (``poses``, ``images``, ``masks``, ``names``)."""
-    from umi_aug.splat.renderer import render
+    from umi_aug.splat.renderer import render  # lazy, start-up: numba, scipy
 
     idx = list(sheet_idx)[: max(cfg.sheet_views, 1)]
     rows = []

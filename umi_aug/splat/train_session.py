@@ -23,6 +23,8 @@ from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.camera.kb import unproject
 from umi_aug.camera.masks import predefined_mask
 from umi_aug.errors import SplatError, UmiAugError
+from umi_aug.recon.session_io import load_session
+from umi_aug.splat.ply import _parse_header
 from umi_aug.splat.train import SplatTrainConfig, SplatTrainResult, TrainView, scene_scale, train_splat
 
 __all__ = ["session_views", "loss_mask", "read_point_cloud", "random_init_points", "train_splat_from_session",
@@ -91,8 +93,6 @@ def session_views(
     Returns:
         ``(views, intrinsics)`` at the training resolution.
     """
-    from umi_aug.recon.session_io import load_session
-
     root = Path(session_dir)
     try:
         sess = load_session(root)
@@ -138,8 +138,6 @@ def session_views(
 def read_point_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """``xyz [N, 3]`` float64 and ``rgb [N, 3]`` in [0, 1] (None without ``red/green/blue``) of a PLY point cloud
     (any binary/ASCII PLY with x, y, z; e.g. recon's ``scene_cloud.ply``, the simulator's ``scene_points.ply``)."""
-    from umi_aug.splat.ply import _parse_header
-
     path = Path(path)
     try:
         raw = path.read_bytes()

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+from pathlib import Path
 
 from umi_aug.runtime import start_background_helper
 
@@ -25,9 +26,11 @@ __all__ = ["compile_kernels", "kernel_cache_is_warm", "start_background_compile"
 
 def compile_kernels() -> None:
     """Call every numba kernel of the CPU splatting path once, on a tiny random scene (float32)."""
+    # lazy, start-up: numpy, torch
     import numpy as np
     import torch
 
+    # lazy, start-up: cv2, torch
     from umi_aug.camera import gopro_intrinsics_2_7k
     from umi_aug.splat.compose import PlacedGaussians, render_composed
     from umi_aug.splat.scenes import look_at_pose, random_gaussians
@@ -57,8 +60,6 @@ def kernel_cache_is_warm() -> bool:
     """Whether numba's cache holds an index for each probe kernel (where numba keeps it: ``NUMBA_CACHE_DIR`` or the
     package's ``__pycache__``). An index of an older source makes numba compile anyway: then this says warm and
     the first run compiles in the foreground, as without this module."""
-    from pathlib import Path
-
     env_dir = os.environ.get("NUMBA_CACHE_DIR")
     roots = [Path(env_dir)] if env_dir else [Path(__file__).resolve().parent / "__pycache__"]
     for name in _PROBE_KERNELS:

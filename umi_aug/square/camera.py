@@ -14,6 +14,7 @@ import numpy as np
 from umi_aug.camera import FisheyeIntrinsics, gopro_intrinsics_2_7k
 from umi_aug.errors import SimError
 from umi_aug.sim.camera_frames import mujoco_to_opencv_camera
+from umi_aug.sim.fisheye_renderer import FisheyeRenderer
 from umi_aug.sim.raster import RasterOptions
 
 __all__ = ["WRIST_CAMERA", "T_CAM_TCP", "NEAR_M", "FAR_M", "wrist_intrinsics", "camera_pose_cv", "WristFisheyeCamera"]
@@ -48,7 +49,7 @@ def camera_pose_cv(model, data, camera: str = WRIST_CAMERA) -> np.ndarray:
     Returns:
         T_world_cam: np.ndarray,  # [4, 4]
     """
-    import mujoco
+    import mujoco  # lazy, optional dependency: mujoco
 
     cid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
     if cid < 0:
@@ -68,8 +69,6 @@ class WristFisheyeCamera:
     """
 
     def __init__(self, model, size: int = 224) -> None:
-        from umi_aug.sim.fisheye_renderer import FisheyeRenderer
-
         self.model = model
         self.intr = wrist_intrinsics(size)
         self.size = int(size)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 __all__ = ["add_square_parsers", "cmd_square_demos", "cmd_square_convert", "cmd_square_init_configs"]
 
@@ -53,11 +54,8 @@ def cmd_square_demos(args: argparse.Namespace) -> int:
 
 
 def cmd_square_convert(args: argparse.Namespace) -> int:
-    from umi_aug.square.convert import convert_robomimic_hdf5
-
-    from pathlib import Path
-
     from umi_aug.io_utils import atomic_write_text
+    from umi_aug.square.convert import convert_robomimic_hdf5
 
     paths = convert_robomimic_hdf5(args.hdf5, args.out, args.image_size, args.max_demos)
     # the same report.json as square-demos, so `umi-aug augment <out>` takes the folder as square demos
@@ -68,8 +66,6 @@ def cmd_square_convert(args: argparse.Namespace) -> int:
 
 
 def cmd_square_init_configs(args: argparse.Namespace) -> int:
-    import json as _json
-
     from umi_aug.square.env import SquareEnv
     from umi_aug.square.init_configs import (InitConfigSpec, reset_init_configs, sample_init_configs,
                                                  source_states_from_hdf5, source_states_from_seeds,
@@ -84,18 +80,18 @@ def cmd_square_init_configs(args: argparse.Namespace) -> int:
         seeds = list(range(args.first_seed, args.first_seed + args.n))
         configs = reset_init_configs(env, source_states_from_seeds(env, seeds), seeds)
         path = write_init_configs(args.out, configs, env.env_meta)
-        print(_json.dumps(configs["report"]))
+        print(json.dumps(configs["report"]))
         print(path)
         return 0
     if args.hdf5:
         sources, env_args = source_states_from_hdf5(args.hdf5)
-        env = SquareEnv(env_meta=_json.loads(env_args), image_size=None)
+        env = SquareEnv(env_meta=json.loads(env_args), image_size=None)
     else:
         env = SquareEnv(image_size=None)
         sources = source_states_from_seeds(env, list(range(args.first_seed, args.first_seed + args.n_sources)))
     spec = InitConfigSpec(n=args.n, theta_deg=args.theta_deg, radius=args.radius, seed=args.seed)
     configs = sample_init_configs(env, sources, spec)
     path = write_init_configs(args.out, configs, env.env_meta)
-    print(_json.dumps(configs["report"]))
+    print(json.dumps(configs["report"]))
     print(path)
     return 0

@@ -10,11 +10,13 @@ import time, so :func:`import_robosuite` selects the offscreen GL backend first 
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import io
 import logging
 import sys
 import types
 from collections.abc import Iterator
+from pathlib import Path
 from types import ModuleType
 
 from umi_aug.errors import SimError
@@ -44,9 +46,6 @@ def _empty_private_macros() -> None:
     """robosuite warns three lines on import when it has no ``macros_private.py`` (its optional per-install
     settings file). Without one, register an empty module under that name (the defaults, as robosuite uses them
     then) so nothing is printed; a real file is left to be imported."""
-    import importlib.util
-    from pathlib import Path
-
     if "robosuite" in sys.modules or "robosuite.macros_private" in sys.modules:
         return
     spec = importlib.util.find_spec("robosuite")  # locates the package without importing it

@@ -12,10 +12,12 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+from tqdm import tqdm
 
 from umi_aug.errors import SimError
 
@@ -31,8 +33,7 @@ def _demo_keys(f) -> list[str]:
 def replay_demo(env, states: np.ndarray, actions: np.ndarray, rewards: np.ndarray | None,
                 dones: np.ndarray | None, model_xml: str | None, name: str = "") -> "object":
     """Re-render one demo from its states; returns an :class:`~umi_aug.square.episode.Episode`."""
-    import time
-
+    # lazy, start-up: cv2
     from umi_aug.square.env import FISHEYE_KEY, LOW_DIM_KEYS
     from umi_aug.square.episode import Episode
 
@@ -73,9 +74,9 @@ def convert_robomimic_hdf5(
     Raises:
         SimError: ``src`` is not a robomimic square hdf5 (names the key), or the env cannot be built.
     """
-    import h5py
-    from tqdm import tqdm
+    import h5py  # lazy, optional dependency: h5py
 
+    # lazy, start-up: cv2, zarr
     from umi_aug.square.camera import T_CAM_TCP, wrist_intrinsics
     from umi_aug.square.env import SquareEnv
     from umi_aug.square.writers import load_episode, save_episode, write_robomimic_hdf5, write_umi_zarr

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from umi_aug.errors import SimError
+from umi_aug.geometry import pose_inverse, so3_log
 from umi_aug.square.camera import WRIST_CAMERA, WristFisheyeCamera, camera_pose_cv
 from umi_aug.square.compat import import_robomimic_env_utils, import_robosuite, robomimic_quiet
 
@@ -57,7 +58,7 @@ def square_env_meta() -> dict[str, Any]:
     """robomimic ``env_meta`` (type 1 = robosuite) of the square task: OSC_POSE delta control at 20 Hz, Panda,
     no robosuite cameras, ``hard_reset=False``. JSON-serialisable; stored as ``data.attrs['env_args']``."""
     rs = import_robosuite()
-    from robosuite.controllers import load_controller_config
+    from robosuite.controllers import load_controller_config  # lazy, optional dependency: robosuite
 
     return {
         "env_name": SQUARE_ENV_NAME,
@@ -77,7 +78,7 @@ def init_robomimic_obs_utils(image_keys: tuple[str, ...] = (FISHEYE_KEY,)) -> No
     """Register observation modalities in robomimic's global ObsUtils (its env wrapper and dataset need it):
     :data:`LOW_DIM_KEYS` as ``low_dim``, ``image_keys`` as ``rgb``."""
     import_robomimic_env_utils()
-    import robomimic.utils.obs_utils as obs_utils
+    import robomimic.utils.obs_utils as obs_utils  # lazy, optional dependency: robomimic
 
     with robomimic_quiet():
         obs_utils.initialize_obs_utils_with_obs_specs(
@@ -228,8 +229,6 @@ class SquareEnv:
 
     def T_cam_tcp(self) -> np.ndarray:
         """Fixed camera→TCP offset of this robot (translation only, camera axes), ``[4, 4]``."""
-        from umi_aug.geometry import pose_inverse
-
         T = pose_inverse(self.wrist_pose()) @ self.tcp_pose()
         T[:3, :3] = np.eye(3)
         return T
@@ -248,8 +247,6 @@ class SquareEnv:
 
     def observation(self) -> dict[str, np.ndarray]:
         """robomimic low-dim observations + fisheye image + UMI keys (see module docstring)."""
-        from umi_aug.geometry import so3_log
-
         self.rs.sim.forward()  # kinematics of the current state (robosuite observes pre-integration kinematics)
         obs = {k: np.asarray(v).copy() for k, v in self.env.get_observation().items()}
         obs["robot0_eef_rot_axis_angle"] = so3_log(self.tcp_pose()[:3, :3])

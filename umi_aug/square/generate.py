@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
@@ -61,13 +62,14 @@ def shard_paths(out_dir: str | os.PathLike, seed: int) -> tuple[Path, Path]:
 def _init_worker(image_size: int) -> None:
     global _ENV
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from umi_aug.square.env import SquareEnv
+    from umi_aug.square.env import SquareEnv  # lazy, start-up: cv2
 
     _ENV = SquareEnv(image_size=image_size)
 
 
 def run_seed(out_dir: str, seed: int, horizon: int, image_size: int) -> dict[str, Any]:
     """Roll out the expert for ``seed`` and store its shard (in the worker's env). Returns a summary."""
+    # lazy, start-up: cv2, zarr
     from umi_aug.square.episode import rollout_expert
     from umi_aug.square.writers import save_episode
 
@@ -120,7 +122,7 @@ def generate_demos(out_dir: str | os.PathLike, cfg: DemoConfig) -> dict[str, Any
     Raises:
         SimError: fewer than ``n`` successes within ``max_seeds`` seeds.
     """
-    from tqdm import tqdm
+    from tqdm import tqdm  # lazy, start-up: tqdm
 
     out_dir = Path(out_dir)
     (out_dir / "shards").mkdir(parents=True, exist_ok=True)
@@ -131,8 +133,6 @@ def generate_demos(out_dir: str | os.PathLike, cfg: DemoConfig) -> dict[str, Any
     next_seed = cfg.start_seed
     pool = None
     if cfg.workers > 1:
-        import multiprocessing as mp
-
         pool = ProcessPoolExecutor(cfg.workers, mp_context=mp.get_context("spawn"),
                                    initializer=_init_worker, initargs=(cfg.image_size,))
     try:
@@ -174,13 +174,14 @@ def generate_demos(out_dir: str | os.PathLike, cfg: DemoConfig) -> dict[str, Any
 
 
 def _episodes(out_dir: Path, seeds: list[int]) -> Iterator:
-    from umi_aug.square.writers import load_episode
+    from umi_aug.square.writers import load_episode  # lazy, start-up: cv2, zarr
 
     for s in seeds:
         yield load_episode(shard_paths(out_dir, s)[0])
 
 
 def _write_datasets(out_dir: Path, seeds: list[int], cfg: DemoConfig) -> dict[str, str]:
+    # lazy, start-up: cv2, zarr
     from umi_aug.square.camera import T_CAM_TCP, wrist_intrinsics
     from umi_aug.square.env import square_env_meta
     from umi_aug.square.writers import write_robomimic_hdf5, write_umi_zarr

@@ -23,10 +23,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from umi_aug.errors import SimError
+from umi_aug.geometry import pose_inverse, sample_cone_start_poses
 from umi_aug.io_utils import atomic_path
 from umi_aug.square.env import GRIP_SITE, SquareEnv
+from umi_aug.square.ik import PandaIK
 
 __all__ = ["InitConfigSpec", "source_states_from_hdf5", "source_states_from_seeds", "sample_init_configs",
            "reset_init_configs", "write_init_configs", "load_init_configs", "apply_init_config"]
@@ -48,7 +51,7 @@ class InitConfigSpec:
 
 def source_states_from_hdf5(path: str | os.PathLike) -> tuple[np.ndarray, str]:
     """``(states [D, S] = each demo's states[0] in demo order, env_args JSON)`` of a robomimic hdf5."""
-    import h5py
+    import h5py  # lazy, optional dependency: h5py
 
     try:
         with h5py.File(path, "r") as f:
@@ -89,11 +92,6 @@ def sample_init_configs(env: SquareEnv, sources: np.ndarray, spec: InitConfigSpe
         ``T_world_site_reached`` [n, 4, 4], ``ik_pos_err`` [n] m, ``ik_rot_err`` [n] rad; and ``report``
         (JSON-able: spec, rejections by reason, tries).
     """
-    from tqdm import tqdm
-
-    from umi_aug.geometry import pose_inverse, sample_cone_start_poses
-    from umi_aug.square.ik import PandaIK
-
     sources = np.asarray(sources, dtype=np.float64)
     if sources.ndim != 2 or len(sources) == 0:
         raise SimError(f"sample_init_configs: sources must be [D, S] with D >= 1, got {sources.shape}")

@@ -19,10 +19,15 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from umi_aug.data import make_umi_episode
 from umi_aug.eval.policies import CheckpointEvalPolicy
-from umi_aug.policy.config import TrainConfig
+from umi_aug.eval.rollout import rollout_config
+from umi_aug.policy import Policy
+from umi_aug.policy.config import TrainConfig, structured_config
 from umi_aug.policy.dataset import lowdim_from_rows, window_rows
+from umi_aug.square.commands import commanded_targets
 
 __all__ = ["DemoChunkModel", "demo_chunks", "oracle_policy", "oracle_config", "OracleDemo", "run_oracle", "LABELS"]
 
@@ -74,8 +79,6 @@ class DemoChunkModel(torch.nn.Module):
 
 def oracle_policy(cfg: TrainConfig, chunks: np.ndarray, n_action_steps: int | None = None) -> CheckpointEvalPolicy:
     """The eval harness's checkpoint policy with :class:`DemoChunkModel` in place of the network."""
-    from umi_aug.policy import Policy
-
     n = int(n_action_steps or cfg.policy.n_action_steps)
     model = DemoChunkModel(chunks, n * int(cfg.task.obs_down_sample_steps))
     return CheckpointEvalPolicy(Policy(model, cfg), n_action_steps=n)
@@ -95,9 +98,6 @@ class OracleDemo:
     @classmethod
     def from_episode(cls, ep: Any) -> "OracleDemo":
         """From a :class:`umi_aug.square.episode.Episode` (rows rounded to float32, as the zarr stores them)."""
-        from umi_aug.data import make_umi_episode
-        from umi_aug.square.commands import commanded_targets
-
         u = make_umi_episode(ep.T_world_tcp, ep.gripper_width)
         pose6 = np.concatenate([u["robot0_eef_pos"], u["robot0_eef_rot_axis_angle"]], 1).astype(np.float64)
         act = commanded_targets(ep.T_world_tcp, ep.actions).astype(np.float32).astype(np.float64)
@@ -125,8 +125,6 @@ LABELS: tuple[str, ...] = ("commanded", "reached")
 def oracle_config(labels: str = "commanded", image_size: int = 84) -> TrainConfig:
     """The square task's training config (``configs/task/square.yaml`` values that matter here), with the labels
     taken from the commanded targets or, for the contrast, the reached poses (UMI's rule)."""
-    from umi_aug.policy.config import structured_config
-
     if labels not in LABELS:
         raise ValueError(f"labels = {labels!r}: expected one of {LABELS}")
     return structured_config({"task": {"name": "square", "image_size": image_size, "obs_down_sample_steps": 1,
@@ -143,9 +141,7 @@ def run_oracle(seeds: list[int], labels: str = "commanded", progress: bool = Fal
         one record per seed: ``seed``, ``demo_steps``, ``demo_success`` and the rollout record's ``success``,
         ``steps_to_success``, ``pregrasp_reached``, ``steps``, ``wall_s``.
     """
-    from tqdm import tqdm
-
-    from umi_aug.eval.rollout import rollout_config
+    # lazy, start-up: cv2
     from umi_aug.square.env import SquareEnv
     from umi_aug.square.episode import rollout_expert
     from umi_aug.square.eval import SceneProbe

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from umi_aug.io_utils import atomic_write_bytes
+
 __all__ = ["tile", "save_small", "demo_sheet", "init_config_sheet"]
 
 #: Largest file written (bytes).
@@ -21,7 +23,7 @@ MAX_BYTES: int = 300_000
 
 def tile(images: list[np.ndarray], labels: list[str], n_cols: int, size: int = 160) -> np.ndarray:
     """Grid of uint8 RGB tiles (resized to ``size``²) with a label in each tile's top-left corner."""
-    import cv2
+    import cv2  # lazy, start-up: cv2
 
     n_rows = -(-len(images) // n_cols)
     sheet = np.full((n_rows * size, n_cols * size, 3), 255, np.uint8)
@@ -35,9 +37,7 @@ def tile(images: list[np.ndarray], labels: list[str], n_cols: int, size: int = 1
 
 def save_small(sheet: np.ndarray, stem: Path) -> Path:
     """Save as ``stem.png``, downscaled (×0.85 steps) until the file is < :data:`MAX_BYTES`."""
-    import cv2
-
-    from umi_aug.io_utils import atomic_write_bytes
+    import cv2  # lazy, start-up: cv2
 
     bgr = cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR)
     while True:
@@ -49,6 +49,7 @@ def save_small(sheet: np.ndarray, stem: Path) -> Path:
 
 def demo_sheet(out_dir: Path, seed: int = 0, n: int = 24) -> Path:
     """Frames of one 224² expert demo (``n`` evenly spaced, phase names in the labels)."""
+    # lazy, start-up: cv2
     from umi_aug.square.env import FISHEYE_KEY, SquareEnv
     from umi_aug.square.episode import rollout_expert
 
@@ -63,6 +64,7 @@ def demo_sheet(out_dir: Path, seed: int = 0, n: int = 24) -> Path:
 
 def init_config_sheet(out_dir: Path, configs_path: str | None, n: int = 24, seed: int = 0) -> Path:
     """Start views (224² fisheye) of ``n`` configurations of an init-config set (evenly spaced indices)."""
+    # lazy, start-up: cv2
     from umi_aug.square.env import SquareEnv
     from umi_aug.square.init_configs import (InitConfigSpec, apply_init_config, load_init_configs,
                                                  sample_init_configs, source_states_from_seeds)

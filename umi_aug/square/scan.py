@@ -24,9 +24,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from tqdm import tqdm
 
 from umi_aug.camera import FisheyeIntrinsics
+from umi_aug.camera.kb import unproject
 from umi_aug.errors import SimError
+from umi_aug.geometry import look_at_rotation
+from umi_aug.sim.fisheye_renderer import FisheyeRenderer
 from umi_aug.sim.gl import import_mujoco
 from umi_aug.sim.raster import RasterOptions
 from umi_aug.square.camera import FAR_M, NEAR_M
@@ -148,8 +152,6 @@ _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
 def _look_at_rolled(pos: np.ndarray, target: np.ndarray, roll: np.ndarray) -> np.ndarray:
-    from umi_aug.geometry import look_at_rotation
-
     R = look_at_rotation(pos, target, np.array([0.0, 0.0, 1.0]))
     c, s = np.cos(roll), np.sin(roll)
     Rz = np.zeros((len(roll), 3, 3))
@@ -276,8 +278,6 @@ class ScanRenderer:
     """
 
     def __init__(self, model, kind: str, intr: FisheyeIntrinsics) -> None:
-        from umi_aug.sim.fisheye_renderer import FisheyeRenderer
-
         self.kind = kind
         self.model = scan_model(model, kind)
         self.intr = intr
@@ -294,8 +294,6 @@ class ScanRenderer:
         rgb, depth, seg = [], [], []
         it = range(len(P))
         if progress:
-            from tqdm import tqdm
-
             it = tqdm(it, desc=f"scan[{self.kind}]", unit="view", leave=False)
         for v in it:
             fr = self.renderer.render(P[v], data, rgb=True, depth=True, segmentation=True)
@@ -338,8 +336,6 @@ def scan_points(frames: ScanFrames, max_points: int, seed: int,
         xyz: np.ndarray,  # [N, 3] metres
         rgb: np.ndarray,  # [N, 3] float in [0, 1]
     """
-    from umi_aug.camera.kb import unproject
-
     intr = frames.intr
     vv, uu = np.mgrid[0:intr.height, 0:intr.width]
     rays, ok = unproject(np.stack([uu, vv], axis=-1).astype(np.float64), intr)

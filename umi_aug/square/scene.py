@@ -31,8 +31,10 @@ meta / model and the reference state): ``model`` (state layout of the model: nq,
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import logging
+import math
 import os
 import threading
 from dataclasses import asdict, dataclass, field
@@ -44,6 +46,12 @@ import numpy as np
 from umi_aug.augment.cache import StageResult, run_stage
 from umi_aug.augment.config import config_hash
 from umi_aug.errors import AugmentError
+from umi_aug.geometry import pose_inverse
+from umi_aug.sim.gl import import_mujoco
+from umi_aug.square.camera import camera_pose_cv, wrist_intrinsics
+from umi_aug.square.env import SquareEnv
+from umi_aug.square.scan import (ScanRenderer, body_pose, data_at_state, nut_orbit_intrinsics, nut_orbit_poses,
+                                 scan_points, scan_poses)
 
 __all__ = ["SquareSceneConfig", "SquareScene", "DemoScene", "build_square_scene", "train_demo_scene",
            "demo_gaussians", "scene_parts", "load_scene_gaussians", "scan_center", "SCENE_VERSION"]
@@ -139,9 +147,6 @@ class SquareSceneConfig:
         """Orbit image size (see ``nut_image_size``), at least 16."""
         if self.nut_image_size is not None:
             return int(self.nut_image_size)
-        import math
-
-        from umi_aug.square.camera import wrist_intrinsics
 
         fx = wrist_intrinsics(self.image_size).fx
         return max(16, int(round(fx * math.radians(self.nut_fov_deg) * float(self.nut_oversample))))
@@ -173,8 +178,6 @@ class SquareScene:
     @property
     def intrinsics(self):
         """Policy-image fisheye intrinsics (:func:`umi_aug.square.camera.wrist_intrinsics`)."""
-        from umi_aug.square.camera import wrist_intrinsics
-
         return wrist_intrinsics(self.image_size)
 
 
@@ -208,19 +211,14 @@ def _source_key(source: Any) -> str:
 def _load_model(source: Any):
     """A raw ``mujoco.MjModel`` of the square task from an env_meta dict (via SquareEnv), a SquareEnv or an MJCF
     string (a copy: the scan never changes the caller's model)."""
-    import copy
-
     _source_key(source)
     if type(source).__name__ == "SquareEnv":
         return copy.deepcopy(source.model)
     if isinstance(source, str):
-        from umi_aug.sim.gl import import_mujoco
-
         try:
             return import_mujoco().MjModel.from_xml_string(source)
         except ValueError as exc:
             raise AugmentError(f"square scene: the MJCF does not compile ({exc})") from exc
-    from umi_aug.square.env import SquareEnv
 
     env = SquareEnv(env_meta=source, image_size=None)
     try:
@@ -269,10 +267,6 @@ def _stage_model(work: Path, source: Any, model: _Model) -> StageResult:
 def scan_center(model, data) -> np.ndarray:
     """Scan centre ``[3]`` (world, metres): on the table top, half-way (xy) between the augmentation cone's pivot
     (``CONE_PIVOT_M`` ahead of the initial wrist camera) and the nut."""
-    from umi_aug.sim.gl import import_mujoco
-    from umi_aug.square.camera import camera_pose_cv
-    from umi_aug.square.scan import body_pose
-
     mujoco = import_mujoco()
     T_cam = camera_pose_cv(model, data)
     pivot = T_cam[:3, 3] + CONE_PIVOT_M * T_cam[:3, 2]
@@ -288,7 +282,7 @@ def scan_center(model, data) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------------- training
 def _train(views, intr, xyz, rgb, iterations: int, max_gaussians: int, cfg: SquareSceneConfig, out: Path,
            progress: bool, *, background=(0.0, 0.0, 0.0), nut: bool = False):
-    from umi_aug.splat.train import SplatTrainConfig, train_splat
+    from umi_aug.splat.train import SplatTrainConfig, train_splat  # lazy, start-up: torch
 
     it = int(iterations)
     extra = {"init_opacity": 0.8, "opacity_reg": 0.0} if nut else {}  # an opaque solid (as obstacle Gaussians)
@@ -302,9 +296,7 @@ def _train(views, intr, xyz, rgb, iterations: int, max_gaussians: int, cfg: Squa
 def _scene_scan_stage(name: str, work: Path, source: Any, model: _Model, state0: np.ndarray, kind: str,
                       cfg: SquareSceneConfig, max_gaussians: int, progress: bool) -> StageResult:
     """Scan of ``kind`` ("static" or "scene") centred for ``state0``, rendered and trained; cached."""
-    from umi_aug.splat.train import TrainView
-    from umi_aug.square.camera import wrist_intrinsics
-    from umi_aug.square.scan import ScanRenderer, data_at_state, scan_points, scan_poses
+    from umi_aug.splat.train import TrainView  # lazy, start-up: torch
 
     def fn(out: Path):
         m = model.get()
@@ -342,10 +334,7 @@ def _train_info(res, n_views: int) -> dict[str, Any]:
 
 def _stage_nut(work: Path, source: Any, model: _Model, state0: np.ndarray, cfg: SquareSceneConfig,
                progress: bool) -> StageResult:
-    from umi_aug.geometry import pose_inverse
-    from umi_aug.splat.train import TrainView
-    from umi_aug.square.scan import (ScanRenderer, body_pose, data_at_state, nut_orbit_intrinsics,
-                                         nut_orbit_poses, scan_points)
+    from umi_aug.splat.train import TrainView  # lazy, start-up: torch
 
     def fn(out: Path):
         m = model.get()
@@ -424,7 +413,7 @@ _LOCK = threading.Lock()
 
 def load_scene_gaussians(scene: SquareScene):
     """``(static, nut)`` Gaussians of ``scene`` (float32), read once per process and file version."""
-    from umi_aug.splat.ply import read_ply
+    from umi_aug.splat.ply import read_ply  # lazy, start-up: torch
 
     out = []
     for p in (scene.static_ply, scene.nut_ply):
@@ -451,7 +440,7 @@ def scene_parts(scene: SquareScene, T_world_nut: np.ndarray):
     Args:
         T_world_nut: np.ndarray,  # [4, 4] rigid nut body pose of the demo (world)
     """
-    from umi_aug.splat.compose import PlacedGaussians
+    from umi_aug.splat.compose import PlacedGaussians  # lazy, start-up: torch
 
     static, nut = load_scene_gaussians(scene)
     return static, [PlacedGaussians(nut, np.asarray(T_world_nut, dtype=np.float64), f"square_nut-{scene.key}")]
@@ -466,6 +455,7 @@ def demo_gaussians(scene: SquareScene, T_world_nut: np.ndarray):
     Raises:
         SplatError: ``T_world_nut`` is not a finite rigid pose.
     """
+    # lazy, start-up: torch
     from umi_aug.splat.compose import transform_gaussians
     from umi_aug.splat.gaussians import Gaussians
 

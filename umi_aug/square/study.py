@@ -35,6 +35,9 @@ output was gone starts its time over and counts ``reruns``).
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import difflib
 import json
 import logging
 import os
@@ -46,9 +49,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
-from umi_aug.errors import UmiAugError
-from umi_aug.io_utils import atomic_write_text
+from umi_aug.config_keys import check_known_keys, check_override_keys
+from umi_aug.errors import EvalError, PolicyError, UmiAugError
+from umi_aug.eval.config import EvalSimConfig
+from umi_aug.io_utils import RunLockedError, atomic_write_text, exclusive_run_lock
+from umi_aug.square.generate import DemoConfig, generate_demos
 
 __all__ = ["StudyConfig", "load_recipe", "study_cells", "run_study", "load_state", "StudyError", "record_eval_dir",
            "record_export_summary", "cell_minutes_estimate"]
@@ -134,10 +141,9 @@ def load_recipe(path: str | os.PathLike, overrides: list[str] = ()) -> StudyConf
     (:class:`~umi_aug.square.variants.SpartnConfig`), the ranges of :data:`RECIPE_RANGES`, and the keys and
     values of ``train_overrides`` / ``eval_overrides`` as ``train/train.py`` / ``eval/eval_sim.py`` would check
     them (those run hours later, after the data steps). One :class:`StudyError` line naming the key."""
+    # lazy, optional dependency: omegaconf
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
-
-    from umi_aug.config_keys import check_known_keys, check_override_keys
 
     overrides = list(overrides)
     listing = f"`python eval/square_study.py recipe={path} --cfg` prints every key"
@@ -154,7 +160,7 @@ def load_recipe(path: str | os.PathLike, overrides: list[str] = ()) -> StudyConf
         out = OmegaConf.to_object(cfg)
     except (OSError, OmegaConfBaseException) as exc:
         raise StudyError(f"square study recipe {path} (overrides {overrides}): {_one_line(exc)}") from None
-    from umi_aug.square.variants import VARIANTS
+    from umi_aug.square.variants import VARIANTS  # lazy, start-up: cv2, scipy, zarr
 
     bad = [v for v in out.variants if v not in VARIANTS]
     if bad:
@@ -172,9 +178,7 @@ def load_recipe(path: str | os.PathLike, overrides: list[str] = ()) -> StudyConf
 
 def _check_nested_keys(path, cfg: StudyConfig) -> None:
     """``scene`` / ``spartn``: dicts of another config's fields (a typo was dropped or failed mid-study)."""
-    import dataclasses
-    import difflib
-
+    # lazy, start-up: cv2, scipy, zarr
     from umi_aug.square.scene import SquareSceneConfig
     from umi_aug.square.variants import SpartnConfig
 
@@ -198,9 +202,7 @@ def _train_overrides(cfg: StudyConfig) -> list[str]:
 def _check_train_overrides(path, cfg: StudyConfig) -> None:
     """``train_overrides``: the keys (``train/train.py``'s own check) and, composed as train.py composes them, the
     values (:func:`umi_aug.policy.train_checks.check_train_values`)."""
-    from umi_aug.config_keys import check_known_keys, check_override_keys
-    from umi_aug.errors import PolicyError
-    from umi_aug.policy.config import TrainConfig
+    from umi_aug.policy.config import TrainConfig  # lazy, start-up: zarr
 
     try:
         check_override_keys(cfg.train_overrides, TrainConfig, "train/train.py", PolicyError)
@@ -212,8 +214,9 @@ def _check_train_overrides(path, cfg: StudyConfig) -> None:
         from hydra.core.global_hydra import GlobalHydra
     except ImportError:  # pragma: no cover - hydra is a dependency of training; without it train.py cannot run
         return
-    from omegaconf.errors import OmegaConfBaseException
+    from omegaconf.errors import OmegaConfBaseException  # lazy, optional dependency: omegaconf
 
+    # lazy, start-up: zarr
     from umi_aug.policy.config import structured_config
     from umi_aug.policy.train_checks import check_train_values
 
@@ -233,10 +236,6 @@ def _check_train_overrides(path, cfg: StudyConfig) -> None:
 
 def _check_eval_overrides(path, cfg: StudyConfig) -> None:
     """``eval_overrides``: the keys ``eval/eval_sim.py`` checks (``policy=NAME`` is its policy group)."""
-    from umi_aug.config_keys import check_override_keys
-    from umi_aug.errors import EvalError
-    from umi_aug.eval.config import EvalSimConfig
-
     argv = ["eval_policy=" + a[len("policy="):] if a.startswith("policy=") else a for a in cfg.eval_overrides]
     try:
         check_override_keys(argv, EvalSimConfig, "eval/eval_sim.py", EvalError, groups=("eval_policy",))
@@ -286,7 +285,7 @@ class _State:
 
 
 def _augment_config(cfg: StudyConfig, theta: float):
-    from umi_aug.augment.config import AugmentConfig
+    from umi_aug.augment.config import AugmentConfig  # lazy, start-up: cv2, scipy
 
     return AugmentConfig(mode="freespace", n_per_demo=cfg.n_per_demo, seed=cfg.seed, cone_half_angle_deg=theta,
                          cone_radius_m=cfg.radius_m, image_size=cfg.image_size, workers=cfg.augment_workers,
@@ -304,6 +303,7 @@ def variant_path(cfg: StudyConfig, cell: dict[str, Any]) -> Path:
 
 
 def _step_export(cfg: StudyConfig, theta: float | None) -> dict[str, Any]:
+    # lazy, start-up: cv2, scipy, zarr
     from umi_aug.augment import export
     from umi_aug.square.source import SquareInput, SquareSource
 
@@ -330,10 +330,11 @@ def _keep(src: Path, dst: Path) -> None:
 
 
 def _step_variant(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
+    # lazy, start-up: cv2, scipy, zarr
     from umi_aug.square.source import SquareInput, gt_render_function, prepare_square, spartn_render_function
     from umi_aug.square.variants import SpartnConfig, write_variant
 
-    from umi_aug.square.variants import subset_variant
+    from umi_aug.square.variants import subset_variant  # lazy, start-up: cv2, scipy, zarr
 
     v, n = cell["variant"], cell["n"]
     big = {**cell, "n": max(cfg.sizes), "name": cell_name(v, max(cfg.sizes))}
@@ -414,8 +415,6 @@ def demos_ready(cfg: StudyConfig) -> bool:
 
 
 def _step_demos(cfg: StudyConfig) -> dict[str, Any]:
-    from umi_aug.square.generate import DemoConfig, generate_demos
-
     rep = generate_demos(cfg.demos_dir, DemoConfig(n=max(cfg.sizes), image_size=cfg.image_size,
                                                    workers=cfg.augment_workers))
     return {"successes": int(rep["successes"]), "tried": int(rep["tried"])}
@@ -456,10 +455,6 @@ def cell_minutes_estimate(cfg: StudyConfig, state: dict[str, Any]) -> float:
 def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eval")) -> dict[str, Any]:
     """Run (or resume) the study's steps of ``phases`` (data, train, eval) in order; returns the state dict. The
     report is :func:`umi_aug.square.report.report_study`."""
-    import contextlib
-
-    from umi_aug.io_utils import RunLockedError, exclusive_run_lock
-
     # one run at a time per outputs and record: a second run would interleave its steps and overwrite the state
     locks = {(cfg.out / STUDY_LOCK).resolve(): f"square study on {cfg.out}",
              (cfg.record / STUDY_LOCK).resolve(): f"square study recording into {cfg.record}"}  # one if they coincide
@@ -473,8 +468,6 @@ def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eva
 
 
 def _run_study_locked(cfg: StudyConfig, phases: tuple[str, ...]) -> dict[str, Any]:
-    from tqdm import tqdm
-
     cfg.out.mkdir(parents=True, exist_ok=True)
     state = _State(cfg.record / "study_state.json")
     t_start = time.perf_counter()

@@ -31,10 +31,14 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from tqdm import tqdm
 
 from umi_aug.augment.export_store import IMAGE_KEY, RECORD_CHUNK, RECORD_KEYS, append_episode, read_episode_records
+from umi_aug.data import ReplayBuffer, make_umi_episode
 from umi_aug.data.schema import ACTION_KEY, SAMPLE_STEP_KEY
 from umi_aug.errors import AugmentError
+from umi_aug.geometry import pos_rotvec_to_pose, so3_exp
+from umi_aug.geometry.umi import camera_poses_from_tcp_poses, tcp_poses_from_camera_poses
 
 __all__ = ["VARIANTS", "SpartnConfig", "write_variant", "subset_variant", "action_only_sources", "spartn_perturbation",
            "VARIANT_ATTR"]
@@ -73,8 +77,6 @@ class SpartnConfig:
 
 def spartn_perturbation(cfg: SpartnConfig, demo: int, t: int, j: int) -> np.ndarray:
     """The camera-frame perturbation ``δ`` [4, 4] of draw ``j`` at step ``t`` of demo ``demo`` (deterministic)."""
-    from umi_aug.geometry import so3_exp
-
     rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, int(demo), int(t), int(j)]))
     d = rng.normal(size=3)
     d /= max(np.linalg.norm(d), 1e-12)
@@ -97,8 +99,6 @@ def action_only_sources(n_new: int, source_splice: int) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------------ writer
 def _empty_like(src):
     """A new in-memory buffer with ``src``'s data keys, chunks and codecs (so stored chunks copy raw)."""
-    from umi_aug.data import ReplayBuffer
-
     buf = ReplayBuffer.create()
     for k in src.keys():
         a = src[k]
@@ -115,9 +115,6 @@ def _lowdim(src, rows: np.ndarray) -> dict[str, np.ndarray]:
 
 def _camera_path(src, low: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """``T_world_cam`` [N, 4, 4] and ``gripper_width`` [N] of an episode's low-dim rows."""
-    from umi_aug.geometry import pos_rotvec_to_pose
-    from umi_aug.geometry.umi import camera_poses_from_tcp_poses
-
     T_cam_tcp = np.asarray(src.root.attrs["T_cam_tcp"], dtype=np.float64)
     T_tcp = pos_rotvec_to_pose(np.concatenate([low["robot0_eef_pos"], low["robot0_eef_rot_axis_angle"]],
                                               axis=1).astype(np.float64))
@@ -155,10 +152,6 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
         summary dict (episodes, frames rendered, per-kind counts) — also stored as the root attribute
         :data:`VARIANT_ATTR`.
     """
-    from tqdm import tqdm
-
-    from umi_aug.data import ReplayBuffer
-
     if variant not in VARIANTS:
         raise AugmentError(f"write_variant: variant {variant!r}; expected one of {VARIANTS}")
     if variant in ("gt_render", "spartn") and render_new is None:
@@ -227,8 +220,6 @@ def subset_variant(variant_path: str | os.PathLike, out_path: str | os.PathLike,
     """The same variant for the first ``n_demos`` source demos only, from a variant dataset of more demos: every
     episode of those demos copied as stored (no rendering again: a smaller data size shares the larger one's
     episodes, as the study's data sizes do)."""
-    from umi_aug.data import ReplayBuffer
-
     with ReplayBuffer.open(variant_path) as b:
         attrs = dict(b.root.attrs.get(VARIANT_ATTR, {}))
     if "variant" not in attrs:
@@ -242,9 +233,6 @@ def _spartn_episodes(buf, src, e: int, rows: np.ndarray, splice: int, cfg: Spart
     """Append the SPARTN episodes of source demo ``e`` (rows ``rows`` of ``src``); returns frames rendered. Each is
     ONE training sample, its perturbed step ``To−1`` (appended to ``steps``, ``meta/umi_aug_sample_step``): the
     windows at its other frames would pair unperturbed or mixed observations with a padded, stopping tail."""
-    from umi_aug.data import make_umi_episode
-    from umi_aug.geometry.umi import tcp_poses_from_camera_poses
-
     T_cam_tcp = np.asarray(src.root.attrs["T_cam_tcp"], dtype=np.float64)
     low = _lowdim(src, rows)
     path = _camera_path(src, low)

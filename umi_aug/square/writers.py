@@ -17,6 +17,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from umi_aug.data import ReplayBuffer, make_umi_episode
 from umi_aug.data.schema import ACTION_KEY
 from umi_aug.errors import SimError
 from umi_aug.io_utils import atomic_path
@@ -32,7 +33,7 @@ IMAGE_COMPRESSION: dict[str, Any] = {"compression": "gzip", "compression_opts": 
 
 def write_robomimic_hdf5(path: str | os.PathLike, episodes: Iterable[Episode], env_meta: dict[str, Any]) -> Path:
     """Write ``episodes`` (streamed) as robomimic ``demo_0 … demo_{n-1}``; returns ``path``."""
-    import h5py
+    import h5py  # lazy, optional dependency: h5py
 
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -72,8 +73,6 @@ def write_umi_zarr(
         T_cam_tcp: np.ndarray,  # [4, 4] camera→TCP offset of the sim robot (stored as a root attribute)
         intrinsics: the fisheye intrinsics dict (``FisheyeIntrinsics.to_dict()``), stored as a root attribute.
     """
-    from umi_aug.data import ReplayBuffer, make_umi_episode
-
     rb = ReplayBuffer.create()
     for ep in episodes:
         if FISHEYE_KEY not in ep.obs:

@@ -32,7 +32,7 @@ class ConvexObstacle:
     """
 
     def __init__(self, points_world: np.ndarray, inflation: float) -> None:
-        from scipy.spatial import ConvexHull, QhullError
+        from scipy.spatial import ConvexHull, QhullError  # lazy, start-up: scipy
 
         pts = np.asarray(points_world, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] < 4 or not np.isfinite(pts).all():

@@ -76,9 +76,10 @@ def plot_trajectories(path: str | Path, problem: TrajProblem, episodes: list, ti
     """3-D plot (perspective and top view) of the original demo (camera positions: pre-contact solid, post-contact
     dashed; TCP pre-contact), the augmented pre-contact segments (camera and TCP), their start poses (optical axes)
     and the obstacle hull; PNG written atomically to ``path``."""
-    import matplotlib
+    import matplotlib  # lazy, start-up: matplotlib
 
     matplotlib.use("Agg", force=False)
+    # lazy, start-up: matplotlib, mpl_toolkits
     from matplotlib.figure import Figure
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 

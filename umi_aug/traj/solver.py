@@ -20,7 +20,7 @@ from scipy.linalg import LinAlgError, solveh_banded
 from umi_aug.geometry.so3 import _so3_exp
 from umi_aug.traj.config import SolverConfig
 from umi_aug.traj.constants import LM_CONVERGED_LAMBDA, LM_MIN_GAIN, LM_STAGNATION_WINDOW
-from umi_aug.traj.objective import TERM_NAMES, ObjectiveData, evaluate
+from umi_aug.traj.objective import TERM_NAMES, ObjectiveData, evaluate, smoothing_matrices
 
 __all__ = ["TrajStatus", "LMResult", "levenberg_marquardt"]
 
@@ -88,7 +88,6 @@ def damping_metric(data: ObjectiveData) -> np.ndarray:
     cached = getattr(data, "_damping_A", None)
     if cached is not None:
         return cached
-    from umi_aug.traj.objective import smoothing_matrices
 
     T = data.T
     n = T - 2

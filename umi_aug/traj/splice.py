@@ -63,7 +63,7 @@ class AugmentedEpisode:
 
     def umi_episode(self, robot: int = 0) -> dict[str, np.ndarray]:
         """The UMI replay-buffer keys of this episode (no images; :func:`umi_aug.data.make_umi_episode`)."""
-        from umi_aug.data import make_umi_episode
+        from umi_aug.data import make_umi_episode  # lazy, start-up: zarr
 
         return make_umi_episode(self.T_world_tcp, self.gripper_width, robot=robot)
 

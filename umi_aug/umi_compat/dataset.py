@@ -53,7 +53,8 @@ from typing import Any, Mapping, Optional
 import numpy as np
 import torch
 
-from umi_aug.errors import PolicyError
+from umi_aug.errors import DatasetError, PolicyError
+from umi_aug.umi_compat.normalizer import umi_normalizer, umi_normalizer_fields
 
 __all__ = ["UmiAugDataset", "task_from_shape_meta", "source_demo_groups", "split_val_mask", "UMI_DATASET_DEFAULTS",
            "AUG_CHOICES", "SPLIT_BY"]
@@ -115,7 +116,7 @@ def task_from_shape_meta(shape_meta: Mapping[str, Any], dataset_path: str, pose_
                          action_padding: bool, seed: int, val_ratio: float, action_key: str | None = None):
     """umi-aug's :class:`~umi_aug.policy.config.TaskConfig` for UMI's ``shape_meta`` / ``pose_repr``; refuses (one
     :class:`PolicyError` naming the key and value) whatever umi-aug's sampler cannot produce exactly."""
-    from umi_aug.policy.config import TaskConfig
+    from umi_aug.policy.config import TaskConfig  # lazy, start-up: zarr
 
     sm = _plain(shape_meta)
     if not isinstance(sm, Mapping) or not isinstance(sm.get("obs"), Mapping) or not isinstance(sm.get("action"),
@@ -216,7 +217,7 @@ def task_from_shape_meta(shape_meta: Mapping[str, Any], dataset_path: str, pose_
 def source_demo_groups(dataset_path: str | os.PathLike) -> np.ndarray:
     """int64 [E]: the source demo of each episode — ``meta/aug_source_episode`` of an umi-aug export (originals
     and their augmentations share it), or the episode index itself for any other UMI dataset."""
-    from umi_aug.data import ReplayBuffer
+    from umi_aug.data import ReplayBuffer  # lazy, start-up: zarr
 
     with ReplayBuffer.open(dataset_path, check_values=False) as buf:
         E = buf.n_episodes
@@ -231,7 +232,7 @@ def source_demo_groups(dataset_path: str | os.PathLike) -> np.ndarray:
 def split_val_mask(groups: np.ndarray, val_ratio: float, seed: int) -> np.ndarray:
     """bool [E] validation episodes when whole groups (source demos) are split with UMI's ``get_val_mask`` rule
     (``round(n_groups·val_ratio)`` groups, at least 1 and at most n_groups-1, ``default_rng(seed)``)."""
-    from umi_aug.policy.dataset import get_val_mask
+    from umi_aug.policy.dataset import get_val_mask  # lazy, start-up: zarr
 
     uniq = np.unique(groups)
     val_groups = uniq[get_val_mask(len(uniq), val_ratio, seed)]
@@ -241,6 +242,7 @@ def split_val_mask(groups: np.ndarray, val_ratio: float, seed: int) -> np.ndarra
 def _cache_copy(dataset_path: Path, cache_dir: str | os.PathLike) -> Path:
     """``cache_dir``: a zarr directory copy of the dataset (chunks as stored), named like UMI's cache
     ``<stem>_<mtime ISO>``; built once under a blocking lock, atomically."""
+    # lazy, start-up: cv2, scipy, zarr
     from umi_aug.augment.cache import build_lock
     from umi_aug.data import ReplayBuffer
 
@@ -259,7 +261,7 @@ def _cache_copy(dataset_path: Path, cache_dir: str | os.PathLike) -> Path:
 def _cached_splat_settings(work_dir: Path) -> dict:
     """The 3DGS settings (``iterations``, ``max_gaussians``) a prepared session's stage cache was trained with
     (``<work_dir>/splat/manifest.json``), or {} when there is none."""
-    from umi_aug.augment.cache import read_manifest
+    from umi_aug.augment.cache import read_manifest  # lazy, start-up: cv2, scipy
 
     man = read_manifest(work_dir / "splat") or {}
     splat = (man.get("settings") or {}).get("splat") or {}
@@ -313,8 +315,8 @@ class UmiAugDataset(_dataset_base()):
                  cone_half_angle_deg: float = 50.0, cone_radius_m: float = 0.15, plan_cache_size: int = 256,
                  tcp_offset_m: float = 0.205, scene_group: int = 1, split_by: str = "episode") -> None:
         super().__init__()
+        # lazy, start-up: zarr
         from umi_aug.data import ReplayBuffer
-        from umi_aug.errors import DatasetError
         from umi_aug.policy.dataset import UmiPolicyDataset
 
         if temporally_independent_normalization:
@@ -379,6 +381,7 @@ class UmiAugDataset(_dataset_base()):
                          splat_max_gaussians, cone_half_angle_deg, cone_radius_m, plan_cache_size, tcp_offset_m,
                          scene_group):
         """umi-aug's augmented dataset over the training split (session prepared or read from its stage cache)."""
+        # lazy, start-up: zarr
         from umi_aug.policy.config import AugConfig, TrainConfig, check_aug
         from umi_aug.policy.workspace import build_augmented_dataset
 
@@ -428,8 +431,6 @@ class UmiAugDataset(_dataset_base()):
         (time steps pooled) — with augmentation also every step of a few planned, not rendered, augmented episodes
         (:meth:`AugmentedUmiDataset.normalizer_dataset`), so the ranges cover the augmented starts. No image is
         decoded."""
-        from umi_aug.umi_compat.normalizer import umi_normalizer, umi_normalizer_fields
-
         src = self._aug.normalizer_dataset() if self._aug is not None else self._train
         n = len(src)
         noise = np.random.default_rng(self.seed)  # the wrt_start statistics include UMI's start-pose noise
@@ -468,7 +469,7 @@ class UmiAugDataset(_dataset_base()):
 
     def _augmented(self, j: int) -> tuple[dict[str, Any], bool]:
         """Augmented slot ``j``'s sample for its current visit, and whether it lies before the first grasp."""
-        from umi_aug.policy.augmented_dataset import MAX_SLOT_DRAWS
+        from umi_aug.policy.augmented_dataset import MAX_SLOT_DRAWS  # lazy, start-up: zarr
 
         aug = self._aug
         visit = int(self._visits[j])

@@ -205,6 +205,7 @@ def umi_normalizer(fields: Mapping[str, Mapping[str, np.ndarray]]) -> nn.Module:
     """The normaliser holding ``fields``: UMI's ``LinearNormalizer`` when importable, else
     :class:`UmiLayoutNormalizer` (the same state-dict layout and values)."""
     if umi_importable():
+        # lazy, optional dependency: diffusion_policy
         from diffusion_policy.model.common.normalizer import LinearNormalizer, SingleFieldLinearNormalizer
 
         norm = LinearNormalizer()
