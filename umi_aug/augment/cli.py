@@ -1,9 +1,10 @@
 """``umi-aug augment SESSION --mode … -n … --out PATH``: the offline export from the command line (wired in
-umi_aug/cli.py)."""
+umi_aug/cli.py). The command imports the pipeline inside :func:`cmd_augment`: building the parser loads none of it."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 __all__ = ["add_augment_parser", "cmd_augment", "config_from_args", "dataset_input_from_args", "check_args",
            "source_settings_from_args"]
@@ -45,6 +46,10 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
     p.add_argument("--obstacle", action="append", default=None, metavar="ASSET",
                    help="obstacle asset (box/cylinder/bottle/mug or a mesh path); repeatable")
     p.add_argument("--mask", choices=("auto", "predefined", "estimated"), default="auto", help="gripper overlay mask")
+    p.add_argument("--mirrors", choices=("auto", "source", "scene"), default="auto",
+                   help="UMI's side mirrors in augmented frames: source = the pixels of the overlay's original frame "
+                        "(black / swapped / reflection, as the dataset has them), scene = the 3DGS render; auto = "
+                        "source unless the frames show no mirror there")
     p.add_argument("--max-attempts", type=int, default=8, help="resamples per episode before it counts as failed")
     p.add_argument("--executor", choices=("local", "ray"), default="local",
                    help="local: this process (1 worker) or spawned processes; ray: a Ray cluster")
@@ -75,8 +80,6 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
 
 def config_from_args(args: argparse.Namespace):
     """The :class:`AugmentConfig` of parsed arguments."""
-    import dataclasses
-
     from umi_aug.augment.config import AugmentConfig, ObstacleConfig, OverlayConfig, SplatStageConfig
     from umi_aug.augment.sources import source_kind
 
@@ -94,7 +97,7 @@ def config_from_args(args: argparse.Namespace):
         splat=SplatStageConfig(iterations=iterations, max_gaussians=max_gaussians),
         recon=dataclasses.replace(base.recon, sfm=dataclasses.replace(base.recon.sfm, mode=args.sfm_mode)),
         obstacle=ObstacleConfig(assets=tuple(args.obstacle)) if args.obstacle else ObstacleConfig(),
-        overlay=OverlayConfig(mask=args.mask), include_original=not args.no_original,
+        overlay=OverlayConfig(mask=args.mask, mirrors=args.mirrors), include_original=not args.no_original,
         executor=args.executor, workers=args.workers, ray_address=args.ray_address,
         jpegxl_effort=_effort_arg(getattr(args, "jpegxl_effort", "4")))
 

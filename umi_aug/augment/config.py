@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from umi_aug.augment.mirrors import MIRROR_MODES
 from umi_aug.errors import AugmentError
 from umi_aug.recon.pipeline import ReconConfig
 from umi_aug.recon.sfm import SfmConfig
@@ -86,12 +87,17 @@ class OverlayConfig:
             mask are always exactly the original's.
         std_threshold: grey-level temporal std (0..255) below which a pixel counts as static (estimate).
         min_coverage: ``"auto"``: minimal fraction of the estimated static region inside the predefined mask.
+        mirrors: UMI's side mirrors (:mod:`umi_aug.augment.mirrors`): ``"source"`` (their pixels come from the
+            overlay's original frame, as the gripper's: black, swapped or a real reflection, as the dataset has
+            them), ``"scene"`` (the 3DGS render; a rig without mirrors), or ``"auto"`` (``"source"`` unless the
+            frames show no mirror there). A source without UMI's rig (the square benchmark) ignores it.
     """
 
     mask: str = "auto"
     feather_px: float = 2.0
     std_threshold: float = 6.0
     min_coverage: float = 0.9
+    mirrors: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -163,6 +169,8 @@ class AugmentConfig:
             raise AugmentError(f"AugmentConfig.executor = {self.executor!r}; expected 'local' or 'ray'")
         if self.overlay.mask not in ("predefined", "estimated", "auto"):
             raise AugmentError(f"OverlayConfig.mask = {self.overlay.mask!r}; expected predefined/estimated/auto")
+        if self.overlay.mirrors not in MIRROR_MODES:
+            raise AugmentError(f"OverlayConfig.mirrors = {self.overlay.mirrors!r}; expected one of {list(MIRROR_MODES)}")
         fi = self.obstacle.fit_iterations
         if isinstance(fi, bool) or not isinstance(fi, int) or fi < 1:
             raise AugmentError(f"ObstacleConfig.fit_iterations = {fi!r}; expected a positive int")

@@ -30,6 +30,7 @@ from scipy.spatial import cKDTree
 
 from umi_aug.augment.cache import StageResult, run_stage
 from umi_aug.augment.config import AugmentConfig
+from umi_aug.augment.mirrors import detect_mirror_convention, mirror_mask, mirror_pixels_from_source
 from umi_aug.augment.overlay import choose_overlay_mask
 from umi_aug.data import ReplayBuffer
 from umi_aug.errors import AugmentError
@@ -100,11 +101,13 @@ def contact_stage(work: Path, recon: StageResult, demos: Sequence[DemoPath], ove
 
 
 def gripper_mask_stage(work: Path, cfg: AugmentConfig, fp: str, dataset: Path, demos: Sequence[MaskDemo],
-                       contact: StageResult) -> StageResult:
+                       contact: StageResult, umi_mirrors: bool = True) -> StageResult:
     """The gripper overlay mask (``mask.npy``: [S, S] bool, ``mask.png``) chosen by
     :func:`~umi_aug.augment.overlay.choose_overlay_mask` from up to 48 frames per demo before its splice frame (or
     before the gripper first closes), read from ``dataset``'s ``camera0_rgb`` (which must hold ``S x S`` frames,
-    ``S = cfg.image_size``). ``fp``: the input's fingerprint (part of the key)."""
+    ``S = cfg.image_size``). ``fp``: the input's fingerprint (part of the key). ``umi_mirrors``: the camera is
+    UMI's GoPro rig: the mirror convention of the frames is detected (stage info ``mirrors``) and, as
+    ``cfg.overlay.mirrors`` says, UMI's mirror polygons join the mask (:mod:`umi_aug.augment.mirrors`)."""
     S = cfg.image_size
 
     def fn(out: Path):
@@ -124,14 +127,25 @@ def gripper_mask_stage(work: Path, cfg: AugmentConfig, fp: str, dataset: Path, d
                 # only these frames are decoded (one chunk per frame), not the whole episode
                 uniq, inv = np.unique(idx, return_inverse=True)
                 frames.append(buf["camera0_rgb"].get_orthogonal_selection((uniq + sl.start,))[inv])
-        mask, info = choose_overlay_mask(np.concatenate(frames), S, cfg.overlay.mask, cfg.overlay.std_threshold,
+        frames = np.concatenate(frames)
+        mask, info = choose_overlay_mask(frames, S, cfg.overlay.mask, cfg.overlay.std_threshold,
                                          cfg.overlay.min_coverage)
+        if umi_mirrors:
+            convention, evidence = detect_mirror_convention(frames)
+            copied = mirror_pixels_from_source(cfg.overlay.mirrors, convention)
+            if copied:
+                mask = mask | mirror_mask(S)
+            info = {**info, "mirrors": {"convention": convention, "from_source": copied, **evidence}}
+            log.info("gripper overlay: mirrors look %s (black %.0f %%, edge ratio %.2f): %s", convention,
+                     100 * evidence["black_fraction"], evidence["edge_ratio"],
+                     "copied from the source frame" if copied else "rendered from the scene")
         np.save(out / "mask.npy", mask)
         cv2.imwrite(str(out / "mask.png"), mask.astype(np.uint8) * 255)
         return {"mask": "mask.npy", "png": "mask.png"}, ["mask.npy", "mask.png"], info
 
     # "rule": bump when choose_overlay_mask's rule changes, so cached masks of the old rule are rebuilt
-    return run_stage("gripper_mask", work, {"overlay": cfg.overlay, "image_size": S, "rule": OVERLAY_MASK_RULE},
+    return run_stage("gripper_mask", work, {"overlay": cfg.overlay, "image_size": S, "rule": OVERLAY_MASK_RULE,
+                                            "umi_mirrors": umi_mirrors},
                      {"session": fp, "contact": contact.key}, fn)
 
 

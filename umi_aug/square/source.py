@@ -42,11 +42,29 @@ import numpy as np
 from umi_aug.augment.cache import StageResult, run_stage
 from umi_aug.augment.config import AugmentConfig, config_hash
 from umi_aug.augment.dataset_source import parse_episodes
+from umi_aug.augment.overlay import composite_overlay
+from umi_aug.augment.render import render_view
 from umi_aug.augment.session_assets import DemoInfo, SessionAssets
 from umi_aug.augment.sources import register_source
 from umi_aug.augment.stages import gripper_mask_stage
+from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
+from umi_aug.data import ReplayBuffer, make_umi_episode
+from umi_aug.data.fingerprint import content_fingerprint
+from umi_aug.data.schema import ACTION_KEY
 from umi_aug.errors import AugmentError, UmiAugError
+from umi_aug.geometry import pos_rotvec_to_pose, transform_points
+from umi_aug.geometry.gripper import CollisionSpheres
+from umi_aug.geometry.umi import camera_poses_from_tcp_poses
+from umi_aug.sim.pointcloud import sample_geom_points
+from umi_aug.sim.scene_sdf import scene_sdf
+from umi_aug.square.commands import path_command_targets
+from umi_aug.square.env import GRIP_SITE, NUT_BODY, SquareEnv
+from umi_aug.square.expert import ExpertConfig, expert_pregrasp_pose, pregrasp_error
+from umi_aug.square.feasibility import FeasibilityConfig, check_panda_path, render_gt_frames
+from umi_aug.square.init_configs import source_states_from_hdf5
 from umi_aug.square.scan import ROBOT_BODY_PREFIXES
+from umi_aug.square.scene import SCENE_VERSION, SquareSceneConfig, build_square_scene, demo_gaussians
+from umi_aug.traj import Demonstration, TrajProblem, TrajScene
 
 __all__ = ["SquareInput", "SquareSource", "SquareAssets", "check_square_demos", "prepare_square", "is_square_demos",
            "open_square", "square_input_from_cli", "square_umi_episode", "gt_render_function",
@@ -103,9 +121,7 @@ def check_square_demos(demos_dir: str | os.PathLike, image_size: int | None = No
         AugmentError: no ``report.json``/paths, a missing file, demo counts that differ between the hdf5 and the
             zarr, frames of another size than ``image_size``, no ``T_cam_tcp`` root attribute.
     """
-    import h5py
-
-    from umi_aug.data import ReplayBuffer
+    import h5py  # lazy, optional dependency: h5py
 
     root = Path(demos_dir)
     rep_path = root / "report.json"
@@ -153,20 +169,18 @@ def _resolve(root: Path, p: str) -> Path:
 
 
 def _env_meta(hdf5: Path) -> dict[str, Any]:
-    from umi_aug.square.init_configs import source_states_from_hdf5
-
     return json.loads(source_states_from_hdf5(hdf5)[1])
 
 
 def _demo_states(hdf5: Path, index: int) -> np.ndarray:
-    import h5py
+    import h5py  # lazy, optional dependency: h5py
 
     with h5py.File(hdf5, "r") as f:
         return np.asarray(f[f"data/demo_{int(index)}/states"][()], dtype=np.float64)
 
 
 def _robot_bodies(model) -> list[str]:
-    import mujoco
+    import mujoco  # lazy, optional dependency: mujoco
 
     names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) or "" for b in range(model.nbody)]
     return [n for n in names if n.startswith(ROBOT_BODY_PREFIXES)]
@@ -174,7 +188,7 @@ def _robot_bodies(model) -> list[str]:
 
 def _robot_state_indices(model) -> tuple[np.ndarray, np.ndarray]:
     """Indices into robosuite's flat state ``[time, qpos, qvel]`` of the robot's joint positions and velocities."""
-    import mujoco
+    import mujoco  # lazy, optional dependency: mujoco
 
     q, v = [], []
     for j in range(model.njnt):
@@ -189,7 +203,7 @@ def _robot_state_indices(model) -> tuple[np.ndarray, np.ndarray]:
 
 def _set_state(env, state: np.ndarray) -> None:
     """Restore a flat robosuite state and update the kinematics (no physics step)."""
-    import mujoco
+    import mujoco  # lazy, optional dependency: mujoco
 
     env.rs.sim.set_state_from_flattened(np.asarray(state, dtype=np.float64))
     mujoco.mj_forward(env.model, env.data)
@@ -205,8 +219,6 @@ def splice_index(T_world_site: np.ndarray, T_world_nut: np.ndarray, table_z: flo
     Returns:
         the frame index, or None when the demo never reaches its pre-grasp pose.
     """
-    from umi_aug.square.expert import ExpertConfig, expert_pregrasp_pose, pregrasp_error
-
     ec = ExpertConfig()
     for t in range(len(T_world_site)):
         dp, dr = pregrasp_error(T_world_site[t], expert_pregrasp_pose(T_world_nut[t], table_z, ec))
@@ -228,11 +240,7 @@ def panda_gripper_spheres(env, n: int = N_GRIPPER_SPHERES, pad_m: float = SPHERE
     sphere per cluster (centre = the points' mean, radius = the farthest point + ``pad_m``). The trajectory
     optimiser's gripper model for square demos (the UMI gripper's spheres are another hand); the whole arm is
     checked by the Panda feasibility test."""
-    import mujoco
-
-    from umi_aug.geometry import transform_points
-    from umi_aug.geometry.gripper import CollisionSpheres
-    from umi_aug.sim.pointcloud import sample_geom_points
+    import mujoco  # lazy, optional dependency: mujoco
 
     m = env.model
     bodies = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(b)) or "" for b in m.geom_bodyid]
@@ -259,10 +267,6 @@ def panda_gripper_spheres(env, n: int = N_GRIPPER_SPHERES, pad_m: float = SPHERE
 def _stage_square_demos(work: Path, files: SquareDemoFiles, fp: str, episodes: Sequence[int]) -> StageResult:
     """Per demo: its initial state, nut pose and splice frame, the scene SDF at the splice frame (pickled), and
     the Panda gripper's collision spheres (from the first demo's start: the fingers are open before contact)."""
-    from umi_aug.data import ReplayBuffer
-    from umi_aug.sim.scene_sdf import scene_sdf
-    from umi_aug.square.env import GRIP_SITE, NUT_BODY, SquareEnv
-
     def fn(out: Path):
         env = SquareEnv(env_meta=_env_meta(files.hdf5), image_size=None)
         try:
@@ -336,15 +340,10 @@ class _SquareDemoAssets(SessionAssets):
 
     @property
     def gaussians(self):
-        from umi_aug.square.scene import demo_gaussians
-
         return self.memoized("gaussians", lambda: demo_gaussians(self.square["scene"], self.T_world_nut))
 
     def make_problem(self, demo_index: int, obstacle):
         """The demo's :class:`umi_aug.traj.TrajProblem` with the Panda gripper's spheres (not the UMI gripper's)."""
-        from umi_aug.geometry.gripper import CollisionSpheres
-        from umi_aug.traj import Demonstration, TrajProblem, TrajScene
-
         d = self.demo(demo_index)
         demo = Demonstration(T_world_cam=d.T_world_cam, timestamps=d.timestamps, gripper_width=d.gripper_width,
                              contact_index=int(d.contact_index))
@@ -361,7 +360,6 @@ class _SquareDemoAssets(SessionAssets):
         """Why the simulated Panda cannot execute ``episode``'s new frames (None: it can)."""
         if not self.square.get("embodiment", True):
             return None
-        from umi_aug.square.feasibility import FeasibilityConfig, check_panda_path
 
         env = _process_env(self.square["env_meta"])
         cfg = FeasibilityConfig(**self.square.get("feasibility", {}))
@@ -378,8 +376,6 @@ _ENVS: dict[str, Any] = {}
 
 def _process_env(env_meta: dict[str, Any]):
     """One :class:`SquareEnv` (no camera) per process and env meta."""
-    from umi_aug.square.env import SquareEnv
-
     key = config_hash(env_meta)
     if key not in _ENVS:
         _ENVS[key] = SquareEnv(env_meta=env_meta, image_size=None)
@@ -420,10 +416,6 @@ def square_umi_episode(assets: SessionAssets, episode, demo_index: int | None) -
     Raises:
         AugmentError: the demos carry ``action`` but ``demo_index`` is not given, or its episode is too short.
     """
-    from umi_aug.data import make_umi_episode
-    from umi_aug.data.schema import ACTION_KEY
-    from umi_aug.square.commands import path_command_targets
-
     T_tcp = np.asarray(episode.T_world_cam) @ assets.square["T_cam_tcp"]
     out = make_umi_episode(T_tcp, episode.gripper_width)
     original = assets.original
@@ -453,11 +445,6 @@ def prepare_square(demos_dir: str | os.PathLike, work_dir: str | os.PathLike, cf
     Raises:
         AugmentError: a bad demo folder (before any compute) or a failed stage (named).
     """
-    from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
-    from umi_aug.data import ReplayBuffer
-    from umi_aug.geometry.umi import camera_poses_from_tcp_poses
-    from umi_aug.square.scene import SquareSceneConfig, build_square_scene
-
     files = check_square_demos(demos_dir, cfg.image_size)
     if "obstacle" in cfg.modes:
         raise AugmentError("square demos: only mode 'freespace' is supported (the square study's augmentation)")
@@ -484,7 +471,6 @@ def prepare_square(demos_dir: str | os.PathLike, work_dir: str | os.PathLike, cf
         ends = np.asarray(buf.episode_ends)
         pos, rot, width = (np.asarray(buf[k][:]) for k in ("robot0_eef_pos", "robot0_eef_rot_axis_angle",
                                                            "robot0_gripper_width"))
-    from umi_aug.geometry import pos_rotvec_to_pose
 
     demos = []
     for e in range(files.n):
@@ -496,7 +482,7 @@ def prepare_square(demos_dir: str | os.PathLike, work_dir: str | os.PathLike, cf
                               s))
     try:
         stages["gripper_mask"] = gm = gripper_mask_stage(work, cfg, fp, files.zarr, [demos[e] for e in episodes],
-                                                         sd)
+                                                         sd, umi_mirrors=False)  # the Panda's wrist camera: no mirrors
     except UmiAugError as exc:
         raise AugmentError(f"{files.root}: stage gripper_mask failed: {exc}") from exc
     views = [scene.scan_T_world_cam] + [demos[e].T_world_cam[: demos[e].contact_index + 1] for e in episodes
@@ -515,8 +501,6 @@ def prepare_square(demos_dir: str | os.PathLike, work_dir: str | os.PathLike, cf
 
 def square_fingerprint(files: SquareDemoFiles) -> str:
     """Content hash of the demo folder's two files."""
-    from umi_aug.data.fingerprint import content_fingerprint
-
     return config_hash(content_fingerprint(files.zarr), content_fingerprint(files.hdf5))
 
 
@@ -537,11 +521,8 @@ class SquareSource:
     def fingerprint(self) -> str:
         """Content of the demo folder + the input settings + the scene model's full config and code version (a
         change of the scene model's defaults must not resume an export made with the old model)."""
-        from umi_aug.square.scene import SCENE_VERSION, SquareSceneConfig
-
         files = check_square_demos(self.demos_dir)
         scene = SquareSceneConfig(**{"image_size": files.size, **self.inp.scene})
-        from umi_aug.square.feasibility import FeasibilityConfig
 
         feas = FeasibilityConfig(**self.inp.feasibility) if self.inp.embodiment else None
         return config_hash(square_fingerprint(files), self.inp, scene, SCENE_VERSION, feas)
@@ -584,9 +565,6 @@ def gt_render_function(assets: SquareAssets):
     """``render_new`` of :func:`umi_aug.square.variants.write_variant` for ``gt_render``: the simulator's
     wrist images of an augmented episode's new frames, the Panda placed on the path by IK (the same check the
     planner passed: :func:`umi_aug.square.feasibility.check_panda_path`), objects as in the demo's start."""
-    from umi_aug.square.env import SquareEnv
-    from umi_aug.square.feasibility import FeasibilityConfig, check_panda_path, render_gt_frames
-
     env = SquareEnv(env_meta=assets.square["env_meta"], image_size=assets.cfg.image_size)
     fcfg = FeasibilityConfig(**assets.square.get("feasibility", {}))
 
@@ -607,9 +585,6 @@ def gt_render_function(assets: SquareAssets):
 def spartn_render_function(assets: SquareAssets):
     """``render_new`` of :func:`umi_aug.square.variants.write_variant` for ``spartn``: the demo's scene
     model rendered at the perturbed poses with the gripper of the demo's frames overlaid (as ``ours``)."""
-    from umi_aug.augment.overlay import composite_overlay
-    from umi_aug.augment.render import render_view
-
     def render_new(episode: int, info: dict[str, Any]) -> np.ndarray:
         h = assets.for_demo(int(info["source"]))
         rendered = np.stack([render_view(h, T) for T in np.asarray(info["T_world_cam"])])
