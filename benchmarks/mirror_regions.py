@@ -77,7 +77,8 @@ def seams(pairs, size: int) -> tuple[float, float]:
 
 
 def picture(rows: list[tuple[str, list]], size: int, out: Path, n_episodes: int) -> None:
-    """One row per (export, episode): left mirror at splice − 1 | at splice || right mirror at splice − 1 | at splice."""
+    """One row per (export, episode): left mirror at splice − 1 | at splice || right mirror at splice − 1 | at
+    splice."""
     first = rows[0][1][0]
     boxes = mirror_boxes(size, (first[1].max(-1) > 16) | (first[2].max(-1) > 16))
     tiles = []

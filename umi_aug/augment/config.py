@@ -170,7 +170,8 @@ class AugmentConfig:
         if self.overlay.mask not in ("predefined", "estimated", "auto"):
             raise AugmentError(f"OverlayConfig.mask = {self.overlay.mask!r}; expected predefined/estimated/auto")
         if self.overlay.mirrors not in MIRROR_MODES:
-            raise AugmentError(f"OverlayConfig.mirrors = {self.overlay.mirrors!r}; expected one of {list(MIRROR_MODES)}")
+            raise AugmentError(f"OverlayConfig.mirrors = {self.overlay.mirrors!r}; expected one of "
+                               f"{list(MIRROR_MODES)}")
         fi = self.obstacle.fit_iterations
         if isinstance(fi, bool) or not isinstance(fi, int) or fi < 1:
             raise AugmentError(f"ObstacleConfig.fit_iterations = {fi!r}; expected a positive int")
