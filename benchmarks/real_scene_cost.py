@@ -1,0 +1,127 @@
+"""Per-scene cost and quality on the real UMI episode (issue #34 item 1): each setting builds the episode's whole scene
+from an empty stage cache — known-pose triangulation (``scene``), distance field + contacts (``sdf``), fisheye 3DGS
+(``splat``), overlay mask — and reports each stage's seconds and the 3DGS's held-out PSNR/SSIM (every 8th real
+pre-contact frame, masked), so error stands against run time for every setting.
+
+    python benchmarks/real_scene_cost.py                                  # every setting below
+    python benchmarks/real_scene_cost.py --settings today "3DGS 300 steps"
+
+Timings are wall seconds on this machine as it is: run on idle cores (nothing else running) and compare settings
+within one run. Goal (#34): a whole scene in <= 45 s on 2 cores at >= 27 dB held-out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from umi_aug.runtime import configure_threads  # noqa: E402
+
+REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata" / "umi_cup_in_the_wild_ep0" / \
+    "dataset.zarr.zip"
+
+#: name → overrides: ``sfm.<field>`` (recon.sfm), ``splat.<field>`` (the 3DGS stage), ``inp.<field>`` (DatasetInput).
+SETTINGS: dict[str, dict[str, object]] = {
+    "today": {},
+    "features 1024": {"sfm.max_num_features": 1024},
+    "no x2 upscale for SIFT": {"inp.sfm_upscale": 1},
+    "every 4th frame to SfM": {"inp.sfm_stride": 4},
+    "overlap 3, no loop grid": {"sfm.overlap": 3, "sfm.loop_stride": 0},
+    "3DGS 300 steps": {"splat.iterations": 300},
+    "3DGS 1200 steps": {"splat.iterations": 1200},
+    "3DGS 15k Gaussians": {"splat.max_gaussians": 15_000},
+    "no background shell": {"inp.background_points": 0},
+}
+
+
+def configs(overrides: dict[str, object]):
+    """``(AugmentConfig, DatasetInput)`` of ``umi-aug augment <dataset>``'s defaults with ``overrides``."""
+    from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
+    from umi_aug.augment.config import AugmentConfig, SplatStageConfig
+    from umi_aug.augment.dataset_source import DatasetInput
+
+    base = AugmentConfig()
+    sfm = dataclasses.replace(base.recon.sfm, mode="known_poses")
+    splat = SplatStageConfig(iterations=DATASET_SPLAT_ITERATIONS, max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS)
+    inp = DatasetInput()
+    for key, value in overrides.items():
+        part, name = key.split(".", 1)
+        if part == "sfm":
+            sfm = dataclasses.replace(sfm, **{name: value})
+        elif part == "splat":
+            splat = dataclasses.replace(splat, **{name: value})
+        elif part == "inp":
+            inp = dataclasses.replace(inp, **{name: value})
+        else:
+            raise SystemExit(f"error: setting key {key!r}: expected sfm.*, splat.* or inp.*")
+    cfg = dataclasses.replace(base, mode="freespace", splat=splat, recon=dataclasses.replace(base.recon, sfm=sfm))
+    return cfg, inp
+
+
+def build_scene(dataset: Path, work: Path, overrides: dict[str, object]) -> dict:
+    """One scene from an empty cache; per-stage seconds, SfM/cloud sizes and the 3DGS held-out quality."""
+    from umi_aug.augment.dataset_source import prepare_dataset
+
+    cfg, inp = configs(overrides)
+    shutil.rmtree(work, ignore_errors=True)
+    t0 = time.perf_counter()
+    assets = prepare_dataset(dataset, work, cfg, inp, renders=True, progress=False)
+    total = time.perf_counter() - t0
+    g = assets.group_of[0]
+    st = {k.split("/", 1)[1]: v for k, v in assets.stages.items() if k.startswith(f"{g}/")}
+    scene, splat = st["scene"].info, st["splat"].info
+    return {"total_s": total, "stages_s": {k: round(v.seconds, 2) for k, v in st.items()},
+            "registered": scene["sfm"]["registered"], "frames": scene["sfm"]["frames"],
+            "points3D": scene["sfm"]["points3D"], "cloud": scene["cloud"]["points"],
+            "psnr": splat["heldout_psnr"], "ssim": splat["heldout_ssim"], "gaussians": splat["gaussians"],
+            "splat_train_s": splat["train_seconds"]}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dataset", default=str(REAL))
+    ap.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
+    ap.add_argument("--work", default="/tmp/umi_aug_real_scene_cost", help="scratch folder (emptied per setting)")
+    ap.add_argument("--out", default=None, help="JSON of the rows (default: <work>/real_scene_cost.json)")
+    args = ap.parse_args()
+    configure_threads()
+    from rich.console import Console
+    from rich.table import Table
+
+    from umi_aug.io_utils import atomic_write_text
+
+    ds = Path(args.dataset)
+    if not ds.exists():
+        print(f"error: {ds}: the real demonstration is not here (../shared/realdata is absent)", file=sys.stderr)
+        return 2
+    console, rows = Console(), []
+    for name in args.settings:
+        r = build_scene(ds, Path(args.work) / "stages", SETTINGS[name])  # (COLMAP's glog kept quiet by recon.sfm)
+        rows.append({"setting": name, "overrides": SETTINGS[name], **r})
+        console.print(f"{name}: {r['total_s']:.1f} s, {r['psnr']:.2f} dB")
+    t = Table(title="one real episode's scene from an empty cache (seconds, held-out PSNR/SSIM every 8th frame)")
+    for c in ("setting", "total s", "scene s", "sdf s", "contact s", "splat s", "mask s", "SfM frames", "points",
+              "PSNR dB", "SSIM", "Gaussians"):
+        t.add_column(c, justify="right")
+    for r in rows:
+        s = r["stages_s"]
+        t.add_row(r["setting"], f"{r['total_s']:.1f}", *(f"{s.get(k, 0.0):.1f}" for k in
+                                                        ("scene", "sdf", "contact", "splat", "gripper_mask")),
+                  f"{r['registered']}/{r['frames']}", str(r["points3D"]), f"{r['psnr']:.2f}", f"{r['ssim']:.3f}",
+                  str(r["gaussians"]))
+    console.print(t)
+    out = Path(args.out) if args.out else Path(args.work) / "real_scene_cost.json"
+    atomic_write_text(out, json.dumps(rows, indent=2, default=float) + "\n")
+    console.print(f"rows: {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
