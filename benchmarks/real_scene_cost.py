@@ -95,22 +95,32 @@ def main() -> int:
     from rich.console import Console
     from rich.table import Table
 
+    from umi_aug.errors import UmiAugError
     from umi_aug.io_utils import atomic_write_text
 
     ds = Path(args.dataset)
     if not ds.exists():
         print(f"error: {ds}: the real demonstration is not here (../shared/realdata is absent)", file=sys.stderr)
         return 2
-    console, rows = Console(), []
+    console, rows = Console(width=200), []
     for name in args.settings:
-        r = build_scene(ds, Path(args.work) / "stages", SETTINGS[name])  # (COLMAP's glog kept quiet by recon.sfm)
+        t0 = time.perf_counter()
+        try:  # (COLMAP's glog is kept quiet by recon.sfm)
+            r = build_scene(ds, Path(args.work) / "stages", SETTINGS[name])
+        except UmiAugError as exc:  # a setting can break a stage (e.g. too sparse a cloud for the contact frame)
+            r = {"total_s": time.perf_counter() - t0, "failed": str(exc)}
+            console.print(f"{name}: FAILED after {r['total_s']:.1f} s: {exc}")
+        else:
+            console.print(f"{name}: {r['total_s']:.1f} s, {r['psnr']:.2f} dB")
         rows.append({"setting": name, "overrides": SETTINGS[name], **r})
-        console.print(f"{name}: {r['total_s']:.1f} s, {r['psnr']:.2f} dB")
     t = Table(title="one real episode's scene from an empty cache (seconds, held-out PSNR/SSIM every 8th frame)")
     for c in ("setting", "total s", "scene s", "sdf s", "contact s", "splat s", "mask s", "SfM frames", "points",
               "PSNR dB", "SSIM", "Gaussians"):
         t.add_column(c, justify="right")
     for r in rows:
+        if "failed" in r:
+            t.add_row(r["setting"], f"{r['total_s']:.1f}", *(["-"] * 7), "failed: " + r["failed"][-60:], "-", "-")
+            continue
         s = r["stages_s"]
         t.add_row(r["setting"], f"{r['total_s']:.1f}", *(f"{s.get(k, 0.0):.1f}" for k in
                                                         ("scene", "sdf", "contact", "splat", "gripper_mask")),
