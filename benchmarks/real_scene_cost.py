@@ -102,11 +102,19 @@ def main() -> int:
     if not ds.exists():
         print(f"error: {ds}: the real demonstration is not here (../shared/realdata is absent)", file=sys.stderr)
         return 2
+    work = Path(args.work)
+    marker = work / ".real_scene_cost"  # the scratch folder is emptied per setting: never a folder of the user's
+    if work.exists() and any(work.iterdir()) and not marker.exists():
+        print(f"error: --work {work}: exists, is not empty and was not made by this benchmark (no {marker.name}); "
+              f"it is emptied per setting: choose a new folder", file=sys.stderr)
+        return 2
+    work.mkdir(parents=True, exist_ok=True)
+    marker.touch()
     console, rows = Console(width=200), []
     for name in args.settings:
         t0 = time.perf_counter()
         try:  # (COLMAP's glog is kept quiet by recon.sfm)
-            r = build_scene(ds, Path(args.work) / "stages", SETTINGS[name])
+            r = build_scene(ds, work / "stages", SETTINGS[name])
         except UmiAugError as exc:  # a setting can break a stage (e.g. too sparse a cloud for the contact frame)
             r = {"total_s": time.perf_counter() - t0, "failed": str(exc)}
             console.print(f"{name}: FAILED after {r['total_s']:.1f} s: {exc}")
@@ -127,7 +135,7 @@ def main() -> int:
                   f"{r['registered']}/{r['frames']}", str(r["points3D"]), f"{r['psnr']:.2f}", f"{r['ssim']:.3f}",
                   str(r["gaussians"]))
     console.print(t)
-    out = Path(args.out) if args.out else Path(args.work) / "real_scene_cost.json"
+    out = Path(args.out) if args.out else work / "real_scene_cost.json"
     atomic_write_text(out, json.dumps(rows, indent=2, default=float) + "\n")
     console.print(f"rows: {out}")
     return 0
