@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from umi_aug.errors import ReconError
-from umi_aug.geometry.sdf import BoxSDF, HalfSpaceSDF, UnionSDF
+from umi_aug.geometry.sdf import BoxSDF, HalfSpaceSDF, SphereSDF, UnionSDF
 from umi_aug.recon.contact import detect_contact, detect_contacts, gripper_clearance
 
 FPS = 60.0
@@ -44,6 +44,25 @@ def test_grasp_onset_within_two_frames():
     # the paper's plain proximity rule: the first frame within the threshold
     p = detect_contact(SCENE, T, w, FPS, threshold=0.03, rule="proximity")
     assert p.contact_index == r.proximity_index
+
+
+def test_a_stray_point_passed_long_before_the_grasp_does_not_set_the_contact():
+    """A sparse cloud's stray point beside the camera's path (the real episode without SIFT upscaling had one): the
+    clearance dips below the threshold ~140 frames before the fingers close, then rises again. The approach that
+    leads into the grasp gates the grasp search; the contact stays at the grasp onset."""
+    T, w = _demo(contact=200, n=300)
+    stray = SphereSDF([0.06, -0.086, T[60, 2, 3]], 0.001)  # beside the camera body as it passes, at frame ~60
+    scene = UnionSDF([SCENE, stray])
+    clean = detect_contact(SCENE, T, w, FPS, threshold=0.03)
+    r = detect_contact(scene, T, w, FPS, threshold=0.03)
+    cl, _ = gripper_clearance(scene, T, w)
+    W = int(round(1.5 * FPS))
+    p = r.proximity_index
+    assert p + W < 200 and cl[p:p + W].max() > 0.06  # the premise: a pass-by, then away, then the approach
+    assert r.contact_index == r.grasp_onset_index == clean.contact_index and abs(r.contact_index - 200) <= 2
+    assert r.extra["gating_proximity_index"] == clean.proximity_index
+    # the paper's plain rule still takes the first frame within the threshold
+    assert detect_contact(scene, T, w, FPS, threshold=0.03, rule="proximity").contact_index == r.proximity_index
 
 
 def test_override_no_contact_and_errors():

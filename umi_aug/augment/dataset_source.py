@@ -58,7 +58,7 @@ from umi_aug.geometry import pos_rotvec_to_pose
 from umi_aug.geometry.umi import camera_poses_from_tcp_poses, umi_T_cam_tcp
 from umi_aug.io_utils import atomic_write_text
 from umi_aug.recon import constants as RC
-from umi_aug.recon.cloud import SceneCloud, clean_cloud, read_ply, write_ply
+from umi_aug.recon.cloud import SceneCloud, clean_cloud, inside_camera_body, read_ply, write_ply
 from umi_aug.recon.contact import detect_contact
 from umi_aug.recon.pipeline import first_close_index
 from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, reachable_region
@@ -406,11 +406,12 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
     def fn(out: Path):
         frames_dir = out / "frames"
         frames_dir.mkdir(parents=True, exist_ok=True)
-        paths, names, T, lengths = [], [], [], []
+        paths, names, T, lengths, free = [], [], [], [], []
         for e in eps:
             d = demos[e]
             end = first_close_index(d.gripper_width)
             end = len(d.gripper_width) if end is None else max(int(end), 2)
+            free.append(d.T_world_cam[:end])
             idx = np.arange(0, end, max(1, inp.sfm_stride))
             imgs = _read_frames(dataset, e, idx)
             for i, im in zip(idx, imgs):
@@ -431,19 +432,23 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
             shutil.rmtree(frames_dir, ignore_errors=True)
             shutil.rmtree(out / "colmap", ignore_errors=True)
         keep = (sfm.track_length >= RC.MIN_TRACK_LENGTH) & (sfm.errors_px <= RC.MAX_POINT_ERROR_PX)
+        # where the camera went before the grasp no scene point can be (artefacts; they faked contacts)
+        body = inside_camera_body(sfm.points, np.concatenate(free))
+        keep &= ~body
         # no radius-outlier removal: a single demo's cloud is sparse, isolated points are still real surface
         cloud = clean_cloud(sfm.points[keep], sfm.colors[keep], sfm.view_dirs[keep], radius_m=0.0)
         write_ply(out / "scene_cloud.ply", cloud)
         info = {"sfm": {"mode": sfm.mode, "frames": len(names), "registered": int(sfm.registered.sum()),
                         "points3D": int(len(sfm.points)), "mean_reproj_error_px": sfm.mean_reproj_error_px,
                         "timings_s": sfm.timings_s},
-                "cloud": {"points": len(cloud)}}
+                "cloud": {"points": len(cloud), "inside_camera_body": int(body.sum())}}
         atomic_write_text(out / "sfm_report.json", json.dumps(info, indent=2, default=float) + "\n")
         return {"cloud": "scene_cloud.ply", "sfm_report": "sfm_report.json"}, ["scene_cloud.ply"], info
 
     conf = {"recon": rc, "image_size": cfg.image_size, "sfm_stride": inp.sfm_stride, "up": up,
             "tcp": inp.tcp_offset_m}
-    return run_stage("scene", work, conf, {"dataset": fp, "episodes": ",".join(map(str, eps))}, fn)
+    # version 2: no cloud points inside the camera's own path (recon.cloud.inside_camera_body)
+    return run_stage("scene", work, conf, {"dataset": fp, "episodes": ",".join(map(str, eps))}, fn, version=2)
 
 
 def _stage_sdf(work: Path, dataset: Path, scene: StageResult, eps: list[int], demos: dict[int, EpisodePoses],
@@ -500,7 +505,8 @@ def _stage_sdf(work: Path, dataset: Path, scene: StageResult, eps: list[int], de
         return ({"sdf": "scene_sdf.npz", "report": "recon_report.json"}, ["scene_sdf.npz", "recon_report.json"],
                 {"sdf": report["sdf"], "contacts": contacts})
 
-    return run_stage("sdf", work, {"recon": rc, "crop": SDF_CROP_M}, {"scene": scene.key}, fn)
+    # version 2: later approaches gate the grasp search too (recon.contact.detect_contact)
+    return run_stage("sdf", work, {"recon": rc, "crop": SDF_CROP_M}, {"scene": scene.key}, fn, version=2)
 
 
 def dataset_views(dataset: Path, demos: dict[int, EpisodePoses], splice: dict[int, int], image_size: int,

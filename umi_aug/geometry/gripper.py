@@ -18,7 +18,7 @@ import numpy as np
 
 from umi_aug.errors import GeometryError
 
-__all__ = ["CollisionSpheres", "umi_gripper_spheres"]
+__all__ = ["CollisionSpheres", "umi_gripper_spheres", "umi_camera_body_spheres"]
 
 #: Finger spheres (z along the finger, radius): base → tip.
 _FINGER_Z_R: tuple[tuple[float, float], ...] = (
@@ -105,3 +105,12 @@ def umi_gripper_spheres(widths: float | Sequence[float] = 0.08, include_body: bo
             radii.append(r)
             names.append(("rail", "rail", "rail", "rail", "camera", "camera", "mount")[i] + f"_{i}")
     return CollisionSpheres(np.array(centers), np.array(radii), tuple(names))
+
+
+def umi_camera_body_spheres() -> CollisionSpheres:
+    """The GoPro body behind the lens and its mount (camera frame, metres; the ``camera_*``/``mount_*`` spheres of
+    :func:`umi_gripper_spheres`, same names). Unlike the fingers and the rail, nothing of the scene comes inside
+    these while a demonstrator holds the gripper."""
+    idx = range(4, len(_BODY))
+    return CollisionSpheres(np.array([_BODY[i][0] for i in idx]), np.array([_BODY[i][1] for i in idx]),
+                            tuple(("camera", "camera", "mount")[i - 4] + f"_{i}" for i in idx))

@@ -15,10 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from umi_aug.errors import ReconError
+from umi_aug.geometry.gripper import CollisionSpheres, umi_camera_body_spheres
 from umi_aug.io_utils import atomic_path
 from umi_aug.recon import constants as C
 
-__all__ = ["SceneCloud", "clean_cloud", "write_ply", "read_ply"]
+__all__ = ["SceneCloud", "clean_cloud", "inside_camera_body", "write_ply", "read_ply"]
 
 
 def _o3d():
@@ -116,6 +117,63 @@ def clean_cloud(points: np.ndarray, colors: np.ndarray | None = None, view_dirs:
 
 _PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
                        ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+
+
+def _body_inputs(points: np.ndarray, T_world_cam: np.ndarray, spheres: CollisionSpheres | None):
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    T = np.asarray(T_world_cam, np.float64).reshape(-1, 4, 4)
+    if not (np.isfinite(pts).all() and np.isfinite(T).all()):
+        raise ReconError(f"inside_camera_body: non-finite points ({len(pts)}) or poses ({len(T)})")
+    return pts, T, spheres or umi_camera_body_spheres()
+
+
+def inside_camera_body(points: np.ndarray, T_world_cam: np.ndarray,
+                       spheres: CollisionSpheres | None = None) -> np.ndarray:
+    """Which points lie inside the camera body at any of the given poses.
+
+    Nothing of a static scene can be where the demonstrator's camera was, so such points are triangulation
+    artefacts: features that move with the camera (lens dirt, the gripper's own parts, mirror content) or outliers
+    of a sparse cloud. One of them, 29 mm in front of the lens at the first frame of the real episode's sparse cloud
+    (no SIFT upscaling), put that demo's contact at frame 0. Pass only poses where the camera moved through free
+    space (before the gripper first closes).
+
+    Args:
+        points: np.ndarray,  # [N, 3] world, metres
+        T_world_cam: np.ndarray,  # [T, 4, 4] camera poses, world, metres
+        spheres: the body model (camera frame); default :func:`umi_camera_body_spheres` (GoPro + mount).
+    Returns:
+        np.ndarray,  # [N] bool, True = strictly inside some sphere at some pose
+    """
+    from scipy.spatial import cKDTree  # lazy, start-up: scipy
+
+    pts, T, sph = _body_inputs(points, T_world_cam, spheres)
+    hit = np.zeros(len(pts), bool)
+    if len(pts) == 0 or len(T) == 0:
+        return hit
+    tree = cKDTree(pts)
+    centres = sph.world(T)  # [T, S, 3]
+    for s, r in enumerate(sph.radii):
+        idx = tree.query_ball_point(centres[:, s], float(r), return_sorted=False)
+        pose = np.repeat(np.arange(len(T)), [len(i) for i in idx])
+        if len(pose):  # the ball query keeps d <= r; a point on the surface is not inside
+            pt = np.concatenate([np.asarray(i, np.int64) for i in idx])
+            d = np.linalg.norm(pts[pt] - centres[pose, s], axis=1)
+            hit[pt[d < r]] = True
+    return hit
+
+
+def _inside_camera_body_reference(points: np.ndarray, T_world_cam: np.ndarray,
+                                  spheres: CollisionSpheres | None = None) -> np.ndarray:
+    """Slow reference of :func:`inside_camera_body`: every point against every sphere at every pose."""
+    pts, T, sph = _body_inputs(points, T_world_cam, spheres)
+    hit = np.zeros(len(pts), bool)
+    for Tt in T:
+        for c_cam, r in zip(sph.centers_cam, sph.radii):
+            c = Tt[:3, :3] @ c_cam + Tt[:3, 3]
+            for i, p in enumerate(pts):
+                if np.sqrt(np.sum((p - c) ** 2)) < r:
+                    hit[i] = True
+    return hit
 
 
 def write_ply(path: str | os.PathLike, cloud: SceneCloud) -> Path:

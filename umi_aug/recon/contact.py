@@ -9,7 +9,9 @@ Rules (``rule``):
 * ``"proximity+grasp"`` (default): the proximity frame gates a grasp-onset search: if within ``GRASP_WINDOW_S``
   after it the gripper width drops by more than ``GRASP_CLOSE_DROP_M`` below its running maximum, the contact frame
   is the onset of that closing (walking back while the width still decreases); otherwise (pushing, non-prehensile
-  tasks) the proximity frame. Reason: a hand-held approach decelerates smoothly onto the object, so the clearance is
+  tasks) the proximity frame. Each later approach (the start of a later run of frames below ``threshold``) gates
+  the search in turn when an earlier one finds no closing: in a sparse cloud the camera can pass a stray point
+  long before it reaches the object (``extra["gating_proximity_index"]`` names the approach that found the grasp). Reason: a hand-held approach decelerates smoothly onto the object, so the clearance is
   nearly flat over the last ~10 frames before the fingers close and a pure threshold cannot place the split within a
   couple of frames; the width onset can.
 ``override`` (a frame index) always wins. Everything is per episode; :func:`detect_contacts` reports all of them.
@@ -120,21 +122,22 @@ def detect_contact(sdf: SignedDistanceField, T_world_cam: np.ndarray, gripper_wi
         raise ReconError(f"detect_contact: rule must be 'proximity' or 'proximity+grasp', got {rule!r}")
     if not (np.isfinite(fps) and fps > 0):
         raise ReconError(f"detect_contact: fps must be > 0, got {fps!r}")
-    hit = np.flatnonzero(cl < threshold)
+    below = cl < threshold
+    hit = np.flatnonzero(below)
     prox = int(hit[0]) if len(hit) else None
-    onset = None
+    onset = gate = None
     if prox is not None and rule == "proximity+grasp":
         W = max(1, int(round(C.GRASP_WINDOW_S * fps)))
-        a = max(0, prox - W)
-        run_max = np.maximum.accumulate(w[a:min(n, prox + W + 1)])
-        seg = w[a:min(n, prox + W + 1)]
-        drop = np.flatnonzero((seg < run_max - C.GRASP_CLOSE_DROP_M) & (np.arange(len(seg)) + a >= prox))
-        if len(drop):
-            g = int(drop[0]) + a
-            while g > a and w[g - 1] > w[g] + C.GRASP_ONSET_TOL_M:
-                g -= 1
-            onset = min(g + 1, n - 1)  # the first frame whose width is below the one before: closing starts
+        # each approach (a run of frames below the threshold) in turn gates the search; the first run may be a pass
+        # by (the camera passing a stray point) that ends long before the grasp
+        for start in np.flatnonzero(below & ~np.r_[False, below[:-1]]):
+            onset = _grasp_onset_after(w, int(start), W)
+            if onset is not None:
+                gate = int(start)
+                break
     res = ContactResult(name, onset if onset is not None else prox, prox, onset, cl, names, rule)
+    if gate is not None and gate != prox:
+        res.extra["gating_proximity_index"] = gate
     if override is not None:
         o = int(override)
         if not 0 <= o < n:
@@ -145,6 +148,22 @@ def detect_contact(sdf: SignedDistanceField, T_world_cam: np.ndarray, gripper_wi
                        f"{cl.min() * 1000:.0f} mm at frame {int(np.argmin(cl))}); raise the threshold, check the "
                        f"reconstruction's alignment, or pass override=<frame>")
     return res
+
+
+def _grasp_onset_after(w: np.ndarray, prox: int, window: int) -> int | None:
+    """Onset of the first closing within ``window`` frames after frame ``prox`` (widths ``w`` [T] metres; the
+    running maximum starts ``window`` frames before ``prox``), or None."""
+    n = len(w)
+    a = max(0, prox - window)
+    seg = w[a:min(n, prox + window + 1)]
+    run_max = np.maximum.accumulate(seg)
+    drop = np.flatnonzero((seg < run_max - C.GRASP_CLOSE_DROP_M) & (np.arange(len(seg)) + a >= prox))
+    if not len(drop):
+        return None
+    g = int(drop[0]) + a
+    while g > a and w[g - 1] > w[g] + C.GRASP_ONSET_TOL_M:
+        g -= 1
+    return min(g + 1, n - 1)  # the first frame whose width is below the one before: closing starts
 
 
 def detect_contacts(sdf: SignedDistanceField, episodes: Sequence[tuple[str, np.ndarray, np.ndarray, float]],

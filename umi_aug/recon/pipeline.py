@@ -31,7 +31,7 @@ from umi_aug.errors import ReconError
 from umi_aug.io_utils import atomic_write_text
 from umi_aug.recon import constants as C
 from umi_aug.recon.align import Sim3, align_sfm_to_poses
-from umi_aug.recon.cloud import SceneCloud, clean_cloud, write_ply
+from umi_aug.recon.cloud import SceneCloud, clean_cloud, inside_camera_body, write_ply
 from umi_aug.recon.contact import ContactResult, detect_contact
 from umi_aug.recon.session_io import SessionData, load_session, write_frames
 from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, reachable_region
@@ -99,6 +99,17 @@ def first_close_index(width: np.ndarray | None, drop: float = C.GRASP_CLOSE_DROP
     return int(hit[0]) if len(hit) else None
 
 
+def _free_space_poses(sess: SessionData, T_frames: np.ndarray) -> np.ndarray:
+    """Camera poses ``[K, 4, 4]`` where the camera moved through free space: the tracked frames given to SfM and
+    every demo's frames before its gripper first closes (:func:`umi_aug.recon.cloud.inside_camera_body`)."""
+    poses = [np.asarray(T_frames, np.float64).reshape(-1, 4, 4)]
+    for d in sess.demos:
+        if d.T_world_cam is not None:
+            c = first_close_index(d.gripper_width)
+            poses.append(d.T_world_cam[: len(d.T_world_cam) if c is None else c])
+    return np.concatenate(poses)
+
+
 def _frames(sess: SessionData, cfg: ReconConfig, frames_dir: Path, size: tuple[int, int] | None):
     paths, names, T, valid, lengths, seq = [], [], [], [], [], []
     shutil.rmtree(frames_dir, ignore_errors=True)
@@ -163,6 +174,8 @@ def reconstruct_session(session: str | os.PathLike | SessionData, out_dir: str |
     sfm, sim = align_sfm_to_poses(sfm, T, valid)  # known_poses: identity
     t = time.perf_counter()
     keep = (sfm.track_length >= C.MIN_TRACK_LENGTH) & (sfm.errors_px <= C.MAX_POINT_ERROR_PX)
+    body = inside_camera_body(sfm.points, _free_space_poses(sess, T[valid]))
+    keep &= ~body
     cloud = clean_cloud(sfm.points[keep], sfm.colors[keep], sfm.view_dirs[keep])
     paths_out = {"cloud": str(write_ply(out / "scene_cloud.ply", cloud))}
     tm["cloud"] = time.perf_counter() - t
@@ -212,7 +225,7 @@ def reconstruct_session(session: str | os.PathLike | SessionData, out_dir: str |
                 "timings_s": sfm.timings_s, "config": asdict(cfg.sfm)},
         "sim3": {"scale": sim.s, "residual_rms_m": sim.residual_rms_m,
                  "rotation_residual_deg": math.degrees(sim.rotation_residual_rad), "n": sim.n},
-        "cloud": {"points": len(cloud)},
+        "cloud": {"points": len(cloud), "inside_camera_body": int(body.sum())},
         "sdf": {"lo": sdf.bounds[0].tolist(), "hi": sdf.bounds[1].tolist(), "voxel_m": sdf.voxel,
                 "shape": list(sdf.shape), "inflation_m": sdf.inflation},
         "contacts": [{"episode": c.name, "contact_index": c.contact_index, "proximity_index": c.proximity_index,

@@ -135,7 +135,8 @@ def _stage_reconstruct(session_dir: Path, work: Path, cfg: AugmentConfig, fp: st
         return ({"cloud": "scene_cloud.ply", "sdf": "scene_sdf.npz", "report": "recon_report.json"},
                 ["scene_cloud.ply", "scene_sdf.npz", "recon_report.json"], info)
 
-    return run_stage("reconstruct", work, rcfg, {"session": fp}, fn)
+    # version 2: no cloud points inside the camera's own path; later approaches gate the grasp search too
+    return run_stage("reconstruct", work, rcfg, {"session": fp}, fn, version=2)
 
 
 def _stage_splat(session_dir: Path, work: Path, cfg: AugmentConfig, fp: str, recon: StageResult,
