@@ -394,8 +394,8 @@ class EpisodePoses:
     gripper_width: np.ndarray
 
 
-def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict[int, EpisodePoses], fps: dict[int, float],
-                 cfg: AugmentConfig, inp: DatasetInput) -> StageResult:
+def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict[int, EpisodePoses],
+                 fps: dict[int, float], cfg: AugmentConfig, inp: DatasetInput) -> StageResult:
     """Known-pose triangulation + cloud + SDF + contacts of one group (outputs as the session reconstruction's)."""
     # known poses always (the TCP poses are the SLAM's); the same key whatever sfm.mode the caller left
     rc = dataclasses.replace(cfg.recon, cone_half_angle_deg=cfg.cone_half_angle_deg,

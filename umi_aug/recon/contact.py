@@ -9,11 +9,12 @@ Rules (``rule``):
 * ``"proximity+grasp"`` (default): the proximity frame gates a grasp-onset search: if within ``GRASP_WINDOW_S``
   after it the gripper width drops by more than ``GRASP_CLOSE_DROP_M`` below its running maximum, the contact frame
   is the onset of that closing (walking back while the width still decreases); otherwise (pushing, non-prehensile
-  tasks) the proximity frame. Each later approach (the start of a later run of frames below ``threshold``) gates
-  the search in turn when an earlier one finds no closing: in a sparse cloud the camera can pass a stray point
-  long before it reaches the object (``extra["gating_proximity_index"]`` names the approach that found the grasp). Reason: a hand-held approach decelerates smoothly onto the object, so the clearance is
-  nearly flat over the last ~10 frames before the fingers close and a pure threshold cannot place the split within a
-  couple of frames; the width onset can.
+  tasks) the proximity frame. Reason: a hand-held approach decelerates smoothly onto the object, so the clearance
+  is nearly flat over the last ~10 frames before the fingers close and a pure threshold cannot place the split
+  within a couple of frames; the width onset can. Each later approach (the start of a later run of frames below
+  ``threshold``) gates the search in turn when an earlier one finds no closing: in a sparse cloud the camera can
+  pass a stray point long before it reaches the object (``extra["gating_proximity_index"]`` names the approach
+  that found the grasp).
 ``override`` (a frame index) always wins. Everything is per episode; :func:`detect_contacts` reports all of them.
 """
 

@@ -249,6 +249,7 @@ def sample_obstacle_placement(asset: ObstacleAsset, T_world_cam: np.ndarray, gri
     if best is None:
         raise ReconError(f"sample_obstacle_placement: no placement of {asset.name!r} (height "
                          f"{asset.height * 100:.0f} cm) blocks the straight approach while keeping "
-                         f"{clearance * 1000:.0f} mm from the pre-contact tail after {max_tries} tries (rejections: {why}); use a "
+                         f"{clearance * 1000:.0f} mm from the pre-contact tail after {max_tries} tries (rejections: {why}); "
+                         f"use a "
                          f"taller or larger asset (scale), widen path_range, or a demo with a longer approach")
     return best
