@@ -77,7 +77,9 @@ def build_scene(dataset: Path, work: Path, overrides: dict[str, object]) -> dict
     g = assets.group_of[0]
     st = {k.split("/", 1)[1]: v for k, v in assets.stages.items() if k.startswith(f"{g}/")}
     scene, splat = st["scene"].info, st["splat"].info
-    return {"total_s": total, "stages_s": {k: round(v.seconds, 2) for k, v in st.items()},
+    contact = st["contact"].info["demos"][0]
+    return {"total_s": total, "contact": contact["contact_index"], "splice": contact["splice_index"],
+            "stages_s": {k: round(v.seconds, 2) for k, v in st.items()},
             "registered": scene["sfm"]["registered"], "frames": scene["sfm"]["frames"],
             "points3D": scene["sfm"]["points3D"], "cloud": scene["cloud"]["points"],
             "psnr": splat["heldout_psnr"], "ssim": splat["heldout_ssim"], "gaussians": splat["gaussians"],
@@ -123,16 +125,17 @@ def main() -> int:
         rows.append({"setting": name, "overrides": SETTINGS[name], **r})
     t = Table(title="one real episode's scene from an empty cache (seconds, held-out PSNR/SSIM every 8th frame)")
     for c in ("setting", "total s", "scene s", "sdf s", "contact s", "splat s", "mask s", "SfM frames", "points",
-              "PSNR dB", "SSIM", "Gaussians"):
+              "contact/splice", "PSNR dB", "SSIM", "Gaussians"):
         t.add_column(c, justify="right")
     for r in rows:
         if "failed" in r:
-            t.add_row(r["setting"], f"{r['total_s']:.1f}", *(["-"] * 7), "failed: " + r["failed"][-60:], "-", "-")
+            t.add_row(r["setting"], f"{r['total_s']:.1f}", *(["-"] * 8), "failed: " + r["failed"][-60:], "-", "-")
             continue
         s = r["stages_s"]
         t.add_row(r["setting"], f"{r['total_s']:.1f}", *(f"{s.get(k, 0.0):.1f}" for k in
                                                         ("scene", "sdf", "contact", "splat", "gripper_mask")),
-                  f"{r['registered']}/{r['frames']}", str(r["points3D"]), f"{r['psnr']:.2f}", f"{r['ssim']:.3f}",
+                  f"{r['registered']}/{r['frames']}", str(r["points3D"]), f"{r['contact']}/{r['splice']}",
+                  f"{r['psnr']:.2f}", f"{r['ssim']:.3f}",
                   str(r["gaussians"]))
     console.print(t)
     out = Path(args.out) if args.out else work / "real_scene_cost.json"

@@ -67,8 +67,10 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
                    help="episodes to augment, e.g. 0:50 or 0,3,7:9 (default all; the others are copied unchanged)")
     g.add_argument("--no-embodiment", action="store_true",
                    help="square demos: skip the simulated Panda's feasibility check of each trajectory")
-    g.add_argument("--scene-group", type=int, default=None, metavar="N",
-                   help="N consecutive episodes share one scene (default 1: a scene per episode)")
+    g.add_argument("--scene-group", default=None, metavar="N|auto",
+                   help="N consecutive episodes share one scene (default 1: a scene per episode); 'auto': episodes "
+                        "recorded in one place share a scene (found from frames at nearby poses whose matches agree "
+                        "with the poses; up to 4 per scene; evidence in <work>/scene_groups.json)")
     g.add_argument("--scene-map", default=None, metavar="JSON",
                    help='JSON file {"scene": [episode, ...]} or [[episode, ...], ...] of episodes sharing a scene')
     g.add_argument("--tcp-offset", type=float, default=None,
@@ -147,7 +149,8 @@ def check_args(args: argparse.Namespace) -> None:
          args.splat_max_gaussians, "must be >= 1")
     need(args.max_attempts >= 1, "--max-attempts", args.max_attempts, "must be >= 1")
     need(args.workers >= 1, "--workers", args.workers, "must be >= 1")
-    need(args.scene_group is None or args.scene_group >= 1, "--scene-group", args.scene_group, "must be >= 1")
+    need(args.scene_group is None or _scene_group_arg(args.scene_group) is not None, "--scene-group",
+         args.scene_group, "expected an int >= 1 or 'auto'")
     lo, hi = TCP_OFFSET_RANGE_M
     need(args.tcp_offset is None or lo <= args.tcp_offset <= hi, "--tcp-offset", args.tcp_offset,
          f"must be in [{lo}, {hi}] m (UMI's gripper: {DEFAULT_TCP_OFFSET_M} m, the distance from the camera to the "
@@ -157,16 +160,27 @@ def check_args(args: argparse.Namespace) -> None:
          "'default'")
 
 
+def _scene_group_arg(value) -> int | str | None:
+    """``--scene-group``: ``"auto"`` or an int >= 1 (None: neither)."""
+    if str(value).strip().lower() == "auto":
+        return "auto"
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        return None
+    return n if n >= 1 else None
+
+
 def dataset_input_from_args(args: argparse.Namespace):
     """The :class:`~umi_aug.augment.dataset_source.DatasetInput` of parsed arguments (used for a plain dataset)."""
     from umi_aug.augment.dataset_source import DatasetInput, load_scene_map, parse_episodes
     from umi_aug.errors import AugmentError
 
-    scene_group = getattr(args, "scene_group", None)
-    scene_group = 1 if scene_group is None else int(scene_group)
+    raw = getattr(args, "scene_group", None)
+    scene_group = 1 if raw is None else _scene_group_arg(raw)
     tcp_offset = getattr(args, "tcp_offset", None)
-    if scene_group < 1:
-        raise AugmentError(f"--scene-group {scene_group}: must be >= 1")
+    if scene_group is None:
+        raise AugmentError(f"--scene-group {raw!r}: expected an int >= 1 or 'auto'")
     return DatasetInput(tcp_offset_m=float(DEFAULT_TCP_OFFSET_M if tcp_offset is None else tcp_offset),
                         episodes=parse_episodes(getattr(args, "episodes", None)),
                         scene_group=scene_group,

@@ -36,12 +36,13 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
+from umi_aug.augment.scene_grouping import group_by_place
 from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig
 from umi_aug.augment.obstacle_stage import check_obstacle_assets
@@ -89,7 +90,10 @@ class DatasetInput:
     Attributes:
         tcp_offset_m: UMI's ``tcp_offset`` (gripper tip to mounting screw, metres) of ``T_cam_tcp``.
         episodes: the episodes to augment (None: all); the others are copied unchanged.
-        scene_group: N > 1 → N consecutive episodes (``index // N``) share one scene.
+        scene_group: N > 1 → N consecutive episodes (``index // N``) share one scene; ``"auto"`` → episodes
+            recorded in one place share a scene, found from the data (:mod:`umi_aug.augment.scene_grouping`: SIFT
+            matches of frames at nearby poses that agree with those poses' epipolar geometry), at most
+            ``max_scene_episodes`` per scene.
         scene_map: explicit groups ``{group name: [episode, ...]}`` (overrides ``scene_group``); episodes not
             named get a scene of their own.
         sfm_stride: every n-th pre-closing frame enters the triangulation.
@@ -103,7 +107,8 @@ class DatasetInput:
 
     tcp_offset_m: float = 0.205
     episodes: tuple[int, ...] | None = None
-    scene_group: int = 1
+    scene_group: int | str = 1
+    max_scene_episodes: int = 4
     scene_map: Mapping[str, Sequence[int]] | None = None
     sfm_stride: int = 2
     sfm_upscale: int = 2
@@ -158,8 +163,11 @@ def load_scene_map(path: str | os.PathLike) -> dict[str, list[int]]:
     return {str(k): list(v) for k, v in raw.items()}
 
 
-def scene_groups(n_episodes: int, selected: Sequence[int], inp: DatasetInput) -> dict[str, list[int]]:
-    """``{group name: [episode, ...]}`` covering the ``selected`` episodes (ordered by first episode)."""
+def scene_groups(n_episodes: int, selected: Sequence[int], inp: DatasetInput,
+                 by_place: Callable[[list[int]], dict[str, list[int]]] | None = None) -> dict[str, list[int]]:
+    """``{group name: [episode, ...]}`` covering the ``selected`` episodes (ordered by first episode).
+    ``by_place``: the grouping of ``scene_group = "auto"`` (episodes → groups), for the episodes the scene map
+    leaves."""
     groups: dict[str, list[int]] = {}
     owner: dict[int, str] = {}
     if inp.scene_map:
@@ -170,11 +178,20 @@ def scene_groups(n_episodes: int, selected: Sequence[int], inp: DatasetInput) ->
                 if int(e) in owner:
                     raise AugmentError(f"scene map: episode {e} is in groups {owner[int(e)]!r} and {name!r}")
                 owner[int(e)] = str(name)
-    n = max(1, int(inp.scene_group))
+    if inp.scene_group == "auto":
+        if by_place is None:
+            raise AugmentError("scene_groups: scene_group 'auto' needs the place grouping (by_place)")
+        owner.update({e: g for g, eps in by_place([int(e) for e in selected if int(e) not in owner]).items()
+                      for e in eps})
+        n = 1
+    elif isinstance(inp.scene_group, str) or int(inp.scene_group) < 1:
+        raise AugmentError(f"scene_group {inp.scene_group!r}: expected an int >= 1 or 'auto'")
+    else:
+        n = int(inp.scene_group)
     for e in selected:
         g = owner.get(e, f"ep{e:06d}" if n == 1 else f"eps{(e // n) * n:06d}-{(e // n) * n + n - 1:06d}")
         groups.setdefault(g, []).append(int(e))
-    return groups
+    return dict(sorted(groups.items(), key=lambda kv: min(kv[1])))
 
 
 @dataclass
@@ -614,6 +631,31 @@ def _build_group(dataset: Path, work: Path, fp: str, g: str, gd: dict[int, Episo
             "mask_info": mask_info, "contact": contact_idx, "stages": stages}
 
 
+def _groups_by_place(dataset: Path, work: Path, chk: DatasetCheck, episodes: list[int], image_size: int,
+                     inp: DatasetInput, progress: bool) -> dict[str, list[int]]:
+    """``scene_group = "auto"``: :func:`umi_aug.augment.scene_grouping.group_by_place` over the episodes' frames
+    before the gripper first closes; the groups and every comparison's evidence go to
+    ``<work>/scene_groups.json`` (to read, or to edit into a ``--scene-map``)."""
+    T = {}
+    for e in episodes:
+        Tc = camera_poses_from_tcp_poses(chk.T_world_tcp[e], inp.T_cam_tcp)
+        c = first_close_index(chk.gripper_width[e])
+        T[e] = Tc[: len(Tc) if c is None else max(int(c), 2)]
+    intr = _policy_intrinsics(image_size)
+    with ReplayBuffer.open(dataset) as buf:
+        start = {e: buf.get_episode_slice(e).start for e in episodes}
+        frames = buf["camera0_rgb"]
+        groups, evidence = group_by_place(episodes, T, lambda e, f: np.asarray(frames[start[e] + int(f)]), intr,
+                                          feature_mask(intr), max_group=inp.max_scene_episodes, progress=progress)
+    work.mkdir(parents=True, exist_ok=True)
+    rows = [{"a": ev.episode_a, "b": ev.episode_b, "same_place": ev.same_place, "frame_pairs": ev.frame_pairs,
+             "matches": ev.matches, "epipolar_inliers": ev.inliers} for ev in evidence]
+    atomic_write_text(work / "scene_groups.json", json.dumps({"groups": groups, "evidence": rows}, indent=1) + "\n")
+    log.info("scene groups by place: %d episodes in %d scenes (%s)", len(episodes), len(groups),
+             work / "scene_groups.json")
+    return groups
+
+
 def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg: AugmentConfig,
                     inp: DatasetInput = DatasetInput(), *, renders: bool = True, progress: bool = True,
                     lazy: bool = False) -> DatasetAssets:
@@ -636,8 +678,9 @@ def prepare_dataset(dataset: str | os.PathLike, work_dir: str | os.PathLike, cfg
     chk = check_dataset(dataset, cfg.image_size, inp)
     fp = dataset_fingerprint(dataset)
     selected = sorted(chk.T_world_tcp)
-    groups = scene_groups(chk.n_episodes, selected, inp)
     T_cam_tcp = inp.T_cam_tcp
+    groups = scene_groups(chk.n_episodes, selected, inp,
+                          lambda eps: _groups_by_place(dataset, work, chk, eps, cfg.image_size, inp, progress))
     fps = 59.94  # UMI keeps every frame of the GoPro's 59.94 fps video
     work.mkdir(parents=True, exist_ok=True)
     stages: dict[str, StageResult] = {}
