@@ -93,7 +93,7 @@ def jittered_dataset(session: Path, out: Path, episodes: tuple[int, ...] = (0, 1
 
 
 def build(setting: str, session: Path, work: Path, iterations: int | None):
-    """The setting's assets (scene built or loaded from ``work``) and the seconds it took."""
+    """Demo 0's assets of the setting (scene built or loaded from ``work``) and the seconds it took."""
     from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
     from umi_aug.augment.config import AugmentConfig, SplatStageConfig
     from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset
@@ -105,7 +105,7 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
         cfg = base if iterations is None else dataclasses.replace(
             base, splat=dataclasses.replace(base.splat, iterations=iterations))
         assets = prepare_session(session, work, dataclasses.replace(cfg, mode="freespace"), progress=False)
-        return assets, assets, time.perf_counter() - t0
+        return assets, time.perf_counter() - t0
     splat = SplatStageConfig(iterations=iterations or DATASET_SPLAT_ITERATIONS,
                              max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS)
     cfg = dataclasses.replace(base, mode="freespace", splat=splat)
@@ -114,7 +114,7 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
                        background_points=0 if "no shell" in setting else DatasetInput.background_points)
     dataset = jittered_dataset(session, work.parent / "dataset_jittered.zarr.zip")
     assets = prepare_dataset(dataset, work, cfg, inp, progress=False)
-    return assets, assets.for_demo(0), time.perf_counter() - t0
+    return assets.for_demo(0), time.perf_counter() - t0
 
 
 def render_3dgs(assets, T_world_cam: np.ndarray, shell_from_m: float | None) -> tuple[np.ndarray, np.ndarray]:
@@ -158,7 +158,9 @@ def main() -> int:
 
     from umi_aug.augment.dataset_source import DatasetInput
     from umi_aug.camera.kb import unproject
+    from umi_aug.io_utils import atomic_write_text
     from umi_aug.camera.umi_image import umi_policy_image
+    from umi_aug.recon.session_io import load_session
     from umi_aug.sim.fisheye_renderer import FisheyeRenderer
     from umi_aug.sim.gl import import_mujoco
     from umi_aug.sim.raster import RasterOptions
@@ -176,13 +178,14 @@ def main() -> int:
     gt_traj = np.load(gt_dir / demo0 / "trajectory.npz")
     T_ref, T_mug0, w0 = gt_traj["T_world_cam"][0], gt_traj["T_world_mug"][0], float(gt_traj["gripper_width"][0])
 
+    session_intrinsics = load_session(session).intrinsics
     mujoco = import_mujoco()
     model = mujoco.MjModel.from_xml_path(str(gt_dir / "scene" / "scene.xml"))
     state = TabletopState(model)
     rows, sheet = [], {}
     for setting in args.settings:
         name = setting.split(" (")[0].replace(" ", "_").replace(",", "").replace("+", "and")
-        full, assets, secs = build(setting, session, work / name, args.iterations)
+        assets, secs = build(setting, session, work / name, args.iterations)
         S = assets.cfg.image_size
         # the dataset path's camera poses are the zarr's TCP poses through T_cam_tcp: they must be the simulator's
         err = float(np.abs(assets.demos[0].T_world_cam[0] - T_ref).max())
@@ -193,7 +196,7 @@ def main() -> int:
         valid = in_lens.reshape(S, S) & ~assets.gripper_mask
         shell = None if setting in ("one demo, no shell", "scan + demos") else \
             shell_distance_m(assets, DatasetInput.background_radius)
-        intr = full.intrinsics
+        intr = session_intrinsics  # the ground truth is rendered as the session's frames were (its raw camera)
         with FisheyeRenderer(model, intr, options=RasterOptions(near=SCENE_NEAR, far=SCENE_FAR)) as renderer:
             for theta in args.thetas:
                 poses = cone_ring_poses(T_ref, assets.cfg.cone_radius_m, math.radians(theta), args.azimuths)
@@ -222,7 +225,7 @@ def main() -> int:
         print(f"| {setting} | " + " | ".join(f"{r['psnr_db_median']:.2f} dB ({100 * r['uncovered_median']:.0f} %)"
                                              for r in cells) + " |")
     out = work / "far_views.json"
-    out.write_text(json.dumps({"session": str(session), "rows": rows}, indent=2) + "\n")
+    atomic_write_text(out, json.dumps({"session": str(session), "rows": rows}, indent=2) + "\n")
     write_sheet(sheet, ["ground truth", *args.settings], work / "far_views.png")
     print(f"\n{out}\n{work / 'far_views.png'}")
     return 0
@@ -232,7 +235,7 @@ def write_sheet(sheet: dict, columns: list[str], path: Path) -> None:
     """Rows θ, columns ground truth and each setting (the first azimuth), labelled."""
     import cv2
 
-    from umi_aug.io_utils import atomic_path
+    from umi_aug.io_utils import atomic_write_bytes
 
     rows = []
     for theta, imgs in sheet.items():
@@ -243,8 +246,10 @@ def write_sheet(sheet: dict, columns: list[str], path: Path) -> None:
                         cv2.LINE_AA)
             tiles.append(im)
         rows.append(np.concatenate(tiles, axis=1))
-    with atomic_path(path) as tmp:
-        cv2.imwrite(str(tmp), cv2.cvtColor(np.concatenate(rows, axis=0), cv2.COLOR_RGB2BGR))
+    ok, png = cv2.imencode(".png", cv2.cvtColor(np.concatenate(rows, axis=0), cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise SystemExit(f"error: {path}: PNG encoding failed")
+    atomic_write_bytes(path, png.tobytes())
 
 
 if __name__ == "__main__":
