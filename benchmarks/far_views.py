@@ -18,6 +18,8 @@ Settings (``--settings``):
 * ``one demo (default)``: the default: plus the far-background shell (``DatasetInput.background_points``), the
   measure aimed at unseen regions (what is behind the seen scene renders as a plausible far background instead of
   black).
+* ``one demo, SfM every 4th frame``: the default with every 4th pre-grasp frame triangulated instead of every
+  2nd (``DatasetInput.sfm_stride``; issue #34 item 1's one free saving on the real episode).
 * ``two demos pooled``: both demos' frames build one scene (``--scene-group 2``; the session's demos share the
   tag frame and the table), with the shell: what pooling the episodes of one place does (issue #34 item 2).
 * ``scan + demos``: the session path (``umi-aug augment <session>``): the mapping scan's frames and both demos
@@ -43,7 +45,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-SETTINGS = ("one demo, no shell", "one demo (default)", "two demos pooled", "scan + demos")
+SETTINGS = ("one demo, no shell", "one demo (default)", "one demo, SfM every 4th frame", "two demos pooled",
+            "scan + demos")
 
 
 def cone_ring_poses(T_ref: np.ndarray, radius: float, theta: float, n: int) -> np.ndarray:
@@ -111,7 +114,8 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
     cfg = dataclasses.replace(base, mode="freespace", splat=splat)
     pooled = setting == "two demos pooled"
     inp = DatasetInput(episodes=(0, 1) if pooled else (0,), scene_group=2 if pooled else 1,
-                       background_points=0 if "no shell" in setting else DatasetInput.background_points)
+                       background_points=0 if "no shell" in setting else DatasetInput.background_points,
+                       sfm_stride=4 if "4th" in setting else DatasetInput.sfm_stride)
     dataset = jittered_dataset(session, work.parent / "dataset_jittered.zarr.zip")
     assets = prepare_dataset(dataset, work, cfg, inp, progress=False)
     return assets.for_demo(0), time.perf_counter() - t0
