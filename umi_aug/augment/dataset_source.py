@@ -42,11 +42,11 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from umi_aug.augment.scene_grouping import group_by_place
 from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig
 from umi_aug.augment.obstacle_stage import check_obstacle_assets
 from umi_aug.augment.preflight import MAX_STEP_DEG, MAX_STEP_M
+from umi_aug.augment.scene_grouping import group_by_place
 from umi_aug.augment.session_assets import OBSTACLE_WORK_KEY, DemoInfo, SessionAssets, drop_process_cache
 from umi_aug.augment.stages import contact_stage, gripper_mask_stage, init_only_gaussians
 from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
