@@ -72,7 +72,11 @@ class SfmConfig:
         pose_pair_max_dist_m / pose_pair_max_angle_deg: extra pairs from known poses (``known_poses`` or when
             poses are given; 0 = off).
         min_registered_fraction / min_registered: refuse reconstructions registering fewer frames.
-        num_threads: threads for extraction/matching/mapping.
+        num_threads: threads for feature matching, and for ``full`` mode's mapping. Extraction and the
+            known-pose triangulation run on one thread, so a known-pose cloud is the same bytes run after run
+            (with 2 threads the keypoints' order and the points' last bits changed; the triangulation took
+            the same time on 1 thread: 52 vs 50 s on the real episode). ``full`` mode stays multi-threaded
+            and is not bit-reproducible.
         seed: COLMAP random seed (reproducible RANSAC).
     """
 
@@ -253,7 +257,9 @@ def _extract_and_match(pc, work: Path, names: list[str], intr: FisheyeIntrinsics
     reader.camera_params = ",".join(f"{v:.10g}" for v in colmap_camera_params(intr))
     reader.mask_path = str(work / "masks")
     ext = pc.FeatureExtractionOptions()
-    ext.num_threads = cfg.num_threads
+    # one extraction thread: with more, COLMAP stores the keypoints in the order its threads finish, so the
+    # cloud changed run to run (a Ray worker's scene != the one-process one); measured +2-4 s of ~120 s
+    ext.num_threads = 1
     ext.max_image_size = cfg.max_image_size
     ext.sift.max_num_features = cfg.max_num_features
     ext.sift.peak_threshold = cfg.peak_threshold
@@ -278,7 +284,7 @@ def _extract_and_match(pc, work: Path, names: list[str], intr: FisheyeIntrinsics
 
 def _mapping_options(pc, cfg: SfmConfig):
     opt = pc.IncrementalPipelineOptions()
-    opt.num_threads = cfg.num_threads
+    opt.num_threads = cfg.num_threads if cfg.mode == "full" else 1  # see SfmConfig.num_threads
     opt.random_seed = cfg.seed
     opt.ba_refine_focal_length = False
     opt.ba_refine_principal_point = False
