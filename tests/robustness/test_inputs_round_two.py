@@ -675,7 +675,8 @@ def _light_stages(monkeypatch, session: Path, disk: _Disk, fill_on_job: int):
             cfg=cfg, paths={"dataset": str(ds)}, demos=[types.SimpleNamespace(index=0, name="demo_00",
                                                                               contact_index=2)],
             augmentable=[0], original=src, stages={}, work_dir=Path(work),
-            umi_episode=lambda episode, d=None: {k: v.copy() for k, v in lowdim.items()})
+            umi_episode=lambda episode, d=None: {k: v.copy() for k, v in lowdim.items()},
+            scene_to_build=lambda d: None)  # a session's one scene: nothing left to build per episode
 
     def job_task(args):
         _, j, job, *_ = args

@@ -53,8 +53,11 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
     p.add_argument("--max-attempts", type=int, default=8, help="resamples per episode before it counts as failed")
     p.add_argument("--executor", choices=("local", "ray"), default="local",
                    help="local: this process (1 worker) or spawned processes; ray: a Ray cluster")
-    p.add_argument("--workers", type=int, default=1, help="episodes planned/rendered in parallel")
-    p.add_argument("--ray-address", default=None, help="existing Ray cluster (default: start a local one)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="tasks in parallel: episodes, and a plain dataset's scene builds (ahead of their episodes)")
+    p.add_argument("--ray-address", default=None,
+                   help="existing Ray cluster, e.g. auto or ray://HOST:10001 (default: start a local one); "
+                        "--work must then be on a filesystem every node mounts at the same path")
     p.add_argument("--no-original", action="store_true", help="do not copy the original episodes")
     p.add_argument("--jpegxl-effort", default="4", metavar="1..9|default",
                    help="libjxl encoder effort of the new frames (4: ~3x faster than libjxl's default 7 with the "
@@ -162,13 +165,9 @@ def check_args(args: argparse.Namespace) -> None:
 
 def _scene_group_arg(value) -> int | str | None:
     """``--scene-group``: ``"auto"`` or an int >= 1 (None: neither)."""
-    if str(value).strip().lower() == "auto":
-        return "auto"
-    try:
-        n = int(value)
-    except (TypeError, ValueError):
-        return None
-    return n if n >= 1 else None
+    from umi_aug.augment.dataset_source import parse_scene_group
+
+    return parse_scene_group(value)
 
 
 def dataset_input_from_args(args: argparse.Namespace):

@@ -66,7 +66,7 @@ from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, reachable_region
 from umi_aug.recon.sfm import feature_mask, run_sfm
 
 __all__ = ["DatasetInput", "DatasetAssets", "DatasetCheck", "is_dataset_path", "check_dataset",
-           "parse_episodes", "scene_groups", "dataset_fingerprint", "prepare_dataset", "background_shell_points",
+           "parse_episodes", "parse_scene_group", "scene_groups", "dataset_fingerprint", "prepare_dataset", "background_shell_points",
            "REQUIRED_KEYS"]
 
 log = logging.getLogger(__name__)
@@ -161,6 +161,20 @@ def load_scene_map(path: str | os.PathLike) -> dict[str, list[int]]:
                                             for v in raw.values()):
         raise AugmentError(f"{path}: scene map must be {{name: [episode, ...]}} or [[episode, ...], ...]")
     return {str(k): list(v) for k, v in raw.items()}
+
+
+def parse_scene_group(value: Any) -> int | str | None:
+    """A scene-group setting as typed (``--scene-group``, ``aug.scene_group``): ``"auto"`` (any case: group by
+    place) or an int >= 1 (episodes per scene); None when it is neither."""
+    if str(value).strip().lower() == "auto":
+        return "auto"
+    if isinstance(value, bool):
+        return None
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        return None
+    return n if n >= 1 and float(value) == n else None
 
 
 def scene_groups(n_episodes: int, selected: Sequence[int], inp: DatasetInput,
@@ -359,6 +373,15 @@ class DatasetAssets(SessionAssets):
         if not self.mask_info:
             self.mask_info = res["mask_info"]
         self.group_paths[g] = res["paths"]
+
+    def scene_to_build(self, demo_index: int) -> str | None:
+        """The demo's scene group, unless this handle has built it already."""
+        g = self.group_of.get(int(demo_index))
+        return None if g is None or g in self.group_paths else g
+
+    def build_scene(self, key: str) -> Path:
+        self.build_group(key)
+        return self.work_dir / "scenes" / key
 
     @property
     def augmentable(self) -> list[int]:

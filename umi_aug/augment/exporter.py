@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import glob
 import json
 import logging
@@ -29,6 +30,7 @@ import os
 import pickle
 import re
 import shutil
+import socket
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -100,7 +102,7 @@ def _job_task(args) -> _JobResult:
     assets, j, job, key, raw_ok, overlay_cache, obstacle_tiles = args
     d, m, a = job
     t_scene = time.perf_counter()
-    assets = assets.for_demo(d)  # the demo's scene (a source may build it here, on first use)
+    assets = assets.for_demo(d)  # the demo's scene (built by its scene task before this job, else here)
     scene_s = time.perf_counter() - t_scene
     if assets.demos[d].contact_index is None:  # known only once a lazily built group has run its contact stage
         return _JobResult(j, None, 0, [f"scene: {assets.demos[d].name} has no splice frame (no contact frame, or "
@@ -124,6 +126,23 @@ def _job_task(args) -> _JobResult:
         frames = render_episode_frames(assets, planned, range(n), cache_originals=overlay_cache,
                                        obstacle_tiles=obstacle_tiles)
     return _JobResult(j, planned, attempts, reasons, frames, copy_tail, t1 - t0, time.perf_counter() - t1, scene_s)
+
+
+def _scene_task(assets: SessionAssets, scene: str) -> dict:
+    """One scene build (top-level, picklable: a task of its own ahead of the scene's episodes): build or load the
+    scene's stages; returns its seconds, the machine and the folder it wrote (which the export then checks it
+    can see: the stage cache must be shared by every machine of a cluster)."""
+    t0 = time.perf_counter()
+    folder = assets.build_scene(scene)
+    return {"seconds": time.perf_counter() - t0, "host": socket.gethostname(), "folder": str(folder)}
+
+
+def _check_scene_visible(scene: str, built: dict) -> None:
+    """A scene built on another machine must be in this machine's stage cache too (a shared ``--work``)."""
+    if not Path(built["folder"]).is_dir():
+        raise AugmentError(f"scene {scene} was built on {built['host']} into {built['folder']}, which this "
+                           f"machine ({socket.gethostname()}) cannot see: with a Ray cluster, put the export's "
+                           f"work folder (--work) on a filesystem every node mounts at the same path")
 
 
 def _plan_cache_path(assets: SessionAssets, job: tuple[int, str, int], key: str) -> Path:
@@ -413,8 +432,15 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
 
         with bar:
             try:
+                def scene_built(scene: str, built: dict) -> None:
+                    _check_scene_visible(scene, built)
+                    timings["scene_s"] += built["seconds"]
+                    assets.build_scene(scene)  # a worker built it: read its stages from the cache (the summary)
+
+                # a plain dataset's scenes build as tasks of their own, several at once, ahead of their episodes
                 for res in map_ordered(_job_task, tasks, executor=cfg.executor, workers=cfg.workers,
-                                       address=cfg.ray_address):
+                                       address=cfg.ray_address, needs=lambda task: assets.scene_to_build(task[2][0]),
+                                       build=functools.partial(_scene_task, assets), on_built=scene_built):
                     timings["scene_s"] += res.scene_s
                     timings["plan_s"] += res.plan_s
                     timings["render_s"] += res.render_s

@@ -228,6 +228,17 @@ class SessionAssets:
         """Indices of the demos that have a contact frame."""
         return [d.index for d in self.demos if d.contact_index is not None]
 
+    def scene_to_build(self, demo_index: int) -> str | None:
+        """The scene that demo ``demo_index``'s episodes need built first, as a key for :meth:`build_scene` (a
+        plain dataset's scene group), or None: nothing left to build (a session's one scene is built by
+        ``prepare``). The export runs each key's build as a task of its own, ahead of its episodes."""
+        return None
+
+    def build_scene(self, key: str) -> Path:
+        """Build (or load from the stage cache) the scene ``key`` of :meth:`scene_to_build`; returns the folder
+        its stages are written to (under :attr:`work_dir`)."""
+        raise AugmentError(f"{self.session_dir}: this input has no scenes built per key (asked for {key!r})")
+
 
 def drop_process_cache(key: str) -> None:
     """Free the heavy members this process loaded under ``key`` (:meth:`SessionAssets.use_process_cache`); a handle

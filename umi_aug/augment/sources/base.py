@@ -12,7 +12,9 @@ The export (:func:`umi_aug.augment.exporter.export`) asks a source, in this orde
    :class:`~umi_aug.augment.session_assets.SessionAssets` handle that the episode loop, the planner and the
    renderer consume: ``cfg``, ``work_dir``, ``demos`` and ``augmentable``, ``original`` (the originals' buffer),
    ``for_demo(d)`` (the handle of demo ``d``'s scene: SDF, Gaussians, render views, overlay mask),
-   ``umi_episode(episode, d)`` (the UMI keys of a new episode) and ``stages`` (for the summary).
+   ``umi_episode(episode, d)`` (the UMI keys of a new episode) and ``stages`` (for the summary); a source
+   whose scenes are built per demo on demand (a plain dataset) also names them, ``scene_to_build(d)`` and
+   ``build_scene(key)``, so the export runs each build as a task of its own ahead of its episodes.
 
 :func:`register_source` adds a kind (a detector and a factory); :func:`open_source` gives the source of the first
 kind whose detector claims the path, or the default kind's (a UMI session) when none does.
