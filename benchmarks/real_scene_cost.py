@@ -21,7 +21,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _scratch import claim_scratch_folder, real_episode_missing  # noqa: E402
 from umi_aug.runtime import configure_threads  # noqa: E402
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata" / "umi_cup_in_the_wild_ep0" / \
@@ -101,17 +103,11 @@ def main() -> int:
     from umi_aug.io_utils import atomic_write_text
 
     ds = Path(args.dataset)
-    if not ds.exists():
-        print(f"error: {ds}: the real demonstration is not here (../shared/realdata is absent)", file=sys.stderr)
-        return 2
     work = Path(args.work)
-    marker = work / ".real_scene_cost"  # the scratch folder is emptied per setting: never a folder of the user's
-    if work.exists() and any(work.iterdir()) and not marker.exists():
-        print(f"error: --work {work}: exists, is not empty and was not made by this benchmark (no {marker.name}); "
-              f"it is emptied per setting: choose a new folder", file=sys.stderr)
+    error = real_episode_missing(ds) or claim_scratch_folder(work, ".real_scene_cost", "it is emptied per setting")
+    if error:
+        print(error, file=sys.stderr)
         return 2
-    work.mkdir(parents=True, exist_ok=True)
-    marker.touch()
     console, rows = Console(width=200), []
     for name in args.settings:
         t0 = time.perf_counter()
