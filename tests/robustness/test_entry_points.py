@@ -80,6 +80,8 @@ def test_train_override_keys_are_checked_before_hydra():
     ("training.num_epochs=0", "training.num_epochs=0: must be an integer >= 1"),
     ("training.lr=-0.1", "training.lr=-0.1: must be a finite number > 0"),
     ("device.num_workers=-1", "device.num_workers=-1: must be an integer >= 0"),
+    ("aug.scene_group=0", "aug.scene_group=0: must be an integer >= 1 or 'auto'"),
+    ("aug.scene_group=everything", "aug.scene_group='everything': must be an integer >= 1 or 'auto'"),
 ])
 def test_train_out_of_range_values_are_refused(override, msg):
     from umi_aug.errors import PolicyError
@@ -91,6 +93,21 @@ def test_train_out_of_range_values_are_refused(override, msg):
         check_train_values(typed)
     assert str(e.value) == msg
     check_train_values(structured_config(_compose_train("device=cpu_smoke")))  # the shipped configs pass
+
+
+@pytest.mark.parametrize("value, typed", [("auto", "auto"), ("AUTO", "AUTO"), ("3", 3)])
+def test_train_takes_scene_group_auto_or_a_count(value, typed):
+    """``aug.scene_group=auto`` (the episodes of one place share a scene, as ``umi-aug augment --scene-group
+    auto``) passes the schema and the checks, and reaches the dataset input as "auto"."""
+    from umi_aug.augment.dataset_source import parse_scene_group
+    from umi_aug.policy.config import check_aug, structured_config
+    from umi_aug.policy.train_checks import check_train_values
+
+    cfg = structured_config(_compose_train("aug=freespace", f"aug.scene_group={value}"))
+    assert cfg.aug.scene_group == typed
+    check_train_values(cfg)
+    check_aug(cfg.aug)
+    assert parse_scene_group(cfg.aug.scene_group) == ("auto" if value.lower() == "auto" else 3)
 
 
 def test_train_py_refuses_a_typo_key_and_a_negative_max_steps(tmp_path):

@@ -179,9 +179,11 @@ class AugConfig:
     splat_max_gaussians: int = 60000
     #: planned episodes kept per DataLoader worker (LRU)
     plan_cache_size: int = 256
-    #: plain UMI dataset input (no session folder): UMI's camera→TCP ``tcp_offset`` (m) and episodes per scene
+    #: plain UMI dataset input (no session folder): UMI's camera→TCP ``tcp_offset`` (m) and episodes per scene:
+    #: an int >= 1 (consecutive episodes), or "auto" (the episodes of one place, found from the data); typed Any
+    #: so that OmegaConf takes either
     tcp_offset_m: float = 0.205
-    scene_group: int = 1
+    scene_group: Any = 1
 
 
 @dataclass
@@ -258,10 +260,21 @@ class TrainConfig:
     training: TrainingConfig = field(default_factory=TrainingConfig)
 
 
+def scene_group_ok(value: Any) -> bool:
+    """``aug.scene_group``: an int >= 1 or ``"auto"``."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value >= 1
+    from umi_aug.augment.dataset_source import parse_scene_group  # only for a string: the augment stage
+
+    return parse_scene_group(value) is not None
+
+
 def check_aug(aug: AugConfig) -> None:
     """Raise :class:`PolicyError` naming the field unless ``aug`` is a valid augmentation setting."""
     if aug.name not in AUG_NAMES:
         raise PolicyError(f"aug.name={aug.name!r} is not an augmentation; expected one of {list(AUG_NAMES)}")
+    if not scene_group_ok(aug.scene_group):
+        raise PolicyError(f"config `aug.scene_group` = {aug.scene_group!r}: expected an int >= 1 or 'auto'")
     if not 0.0 <= aug.ratio < 1.0:
         raise PolicyError(f"config `aug.ratio` = {aug.ratio!r}: expected a fraction in [0, 1)")
     if aug.n_aug_per_demo < 1:

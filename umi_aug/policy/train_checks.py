@@ -16,6 +16,7 @@ from typing import Any, Callable
 
 from umi_aug.errors import PolicyError
 from umi_aug.io_utils import atomic_path
+from umi_aug.policy.config import scene_group_ok
 
 __all__ = ["check_train_values", "prepare_run_folder"]
 
@@ -57,7 +58,7 @@ RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "aug.splat_iterations": _int_at_least(1),
     "aug.splat_max_gaussians": _int_at_least(1),
     "aug.plan_cache_size": _int_at_least(1),
-    "aug.scene_group": _int_at_least(1),
+    "aug.scene_group": (scene_group_ok, "must be an integer >= 1 or 'auto'"),
     "aug.tcp_offset_m": _pos_float(zero_ok=True),
     "aug.cone_radius_m": _pos_float(zero_ok=True),
 }

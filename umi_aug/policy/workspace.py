@@ -68,7 +68,8 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
                          image_size=cfg.task.image_size,
                          splat=SplatStageConfig(iterations=a.splat_iterations, max_gaussians=a.splat_max_gaussians))
     if plain:
-        from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset  # lazy, start-up: cv2, scipy
+        from umi_aug.augment.dataset_source import (DatasetInput, parse_scene_group,  # lazy, start-up: cv2
+                                                    prepare_dataset)
 
         # lazily: a scene group is built (or read from its cache) by the first process that samples one of its
         # episodes (the normaliser fit here, then the DataLoader workers), so training starts at once and the
@@ -77,7 +78,8 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
         log.info("aug=%s: scenes of dataset %s built from its own frames on first use (cached in %s)", a.name,
                  dataset_path, work)
         assets = prepare_dataset(dataset_path, work, acfg, DatasetInput(tcp_offset_m=a.tcp_offset_m,
-                                                                        scene_group=a.scene_group,
+                                                                        scene_group=parse_scene_group(
+                                                                            a.scene_group),
                                                                         episodes=train_eps),
                                  lazy=True)
     else:

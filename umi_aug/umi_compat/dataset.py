@@ -298,7 +298,8 @@ class UmiAugDataset(_dataset_base()):
             ``work_dir`` was trained with, else umi-aug's defaults (4000 / 60000).
         cone_half_angle_deg / cone_radius_m: start-pose cone (paper: 50°, 0.15 m).
         plan_cache_size: planned episodes kept per DataLoader worker.
-        tcp_offset_m / scene_group: plain-dataset input (UMI's camera→TCP offset in metres, episodes per scene).
+        tcp_offset_m / scene_group: plain-dataset input (UMI's camera→TCP offset in metres; episodes per scene,
+            or ``"auto"``: the episodes recorded in one place share a scene, found from the data).
         split_by: "episode" (UMI's split) or "source_demo" (whole source demos of an umi-aug export).
     Raises:
         PolicyError: an argument or ``shape_meta`` entry it does not implement exactly (naming it), a dataset it
@@ -313,7 +314,7 @@ class UmiAugDataset(_dataset_base()):
                  work_dir: Optional[str] = None, n_aug_per_demo: int = 1000, aug_seed: int = 0,
                  splat_iterations: Optional[int] = None, splat_max_gaussians: Optional[int] = None,
                  cone_half_angle_deg: float = 50.0, cone_radius_m: float = 0.15, plan_cache_size: int = 256,
-                 tcp_offset_m: float = 0.205, scene_group: int = 1, split_by: str = "episode") -> None:
+                 tcp_offset_m: float = 0.205, scene_group: int | str = 1, split_by: str = "episode") -> None:
         super().__init__()
         # lazy, start-up: zarr
         from umi_aug.data import ReplayBuffer
@@ -403,7 +404,7 @@ class UmiAugDataset(_dataset_base()):
                       cone_half_angle_deg=float(cone_half_angle_deg), cone_radius_m=float(cone_radius_m),
                       splat_iterations=int(iters), splat_max_gaussians=int(budget),
                       plan_cache_size=int(plan_cache_size), tcp_offset_m=float(tcp_offset_m),
-                      scene_group=int(scene_group))
+                      scene_group=scene_group)
         check_aug(a)
         return build_augmented_dataset(self._train, path.absolute(), TrainConfig(task=self.task, aug=a))
 
