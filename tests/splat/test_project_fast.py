@@ -93,13 +93,28 @@ def test_fast_projection_matches_reference_float64(rng, filt):
     gb = torch.autograd.grad(_loss(ref, w), list(g))
     culled = torch.ones(g.n, dtype=torch.bool)
     culled[ref.ids] = False
+    cond = _cov2d_condition(ref, g.n)
     for name, a, b in zip(PARAMS, ga, gb):
         assert torch.isfinite(a).all(), name
         assert (a[culled] == 0).all(), name  # culled Gaussians: exactly zero, as the reference
         scale = b.abs().max().item()
         assert (a - b).abs().max().item() <= 1e-6 * (1.0 + scale), (name, (a - b).abs().max().item(), scale)
-        rel = (a - b).abs() / (1.0 + b.abs())
-        assert rel.max().item() <= 1e-6, (name, int(rel.argmax()))
+        rel = ((a - b).abs() / (1.0 + b.abs())).reshape(g.n, -1).amax(dim=1)
+        tol = 1e-6 + 100.0 * torch.finfo(torch.float64).eps * cond  # per Gaussian, see below
+        assert (rel <= tol).all(), (name, int((rel / tol).argmax()), rel.max().item())
+
+
+def _cov2d_condition(proj, n: int) -> torch.Tensor:
+    """Per Gaussian: the condition number of its 2-D covariance ``[[a, b], [b, c]]`` (1 where culled). A pancake
+    seen edge-on has one near 1e10; inverting it (the conic, and every gradient through it) loses ~cond × eps of
+    float64, so the two paths may differ by ~1e-6 there while agreeing to ~1e-15 elsewhere (seen once:
+    UMI_AUG_TEST_SEED=225065634, a log-scale gradient 1.1e-6 apart at cond 1.0e10)."""
+    a, b, c = proj.cov2d.detach().unbind(-1)
+    half_trace, root = 0.5 * (a + c), torch.sqrt(0.25 * (a - c) ** 2 + b ** 2)
+    lam_max, lam_min = half_trace + root, (half_trace - root).clamp_min(1e-300)
+    cond = torch.ones(n, dtype=torch.float64)
+    cond[proj.ids] = (lam_max / lam_min).to(torch.float64)
+    return cond
 
 
 def test_fast_projection_float32_close_to_float64(rng):
