@@ -145,3 +145,18 @@ def test_two_workers_build_two_scenes_at_once(tmp_path, monkeypatch):
     got = list(map_ordered(lambda_free_identity, items, workers=2, needs=lambda it: it[0],
                            build=build_meeting_the_other))
     assert got == items
+
+
+def test_items_are_consumed_lazily_when_nothing_is_built(rng):
+    """Without builds the items are pulled as they are submitted (a generator's memory stays bounded)."""
+    pulled = []
+
+    def items():
+        for it in _items(rng, 20):
+            pulled.append(it)
+            yield it
+
+    it = map_ordered(seeded_task, items(), workers=2, max_in_flight=2)
+    first = next(it)
+    assert first == seeded_task(pulled[0]) and len(pulled) <= 4  # 2 in flight + the head, not all 20
+    assert len(list(it)) == 19

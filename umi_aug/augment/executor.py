@@ -134,7 +134,7 @@ def map_ordered(fn: Callable[[T], R], items: Iterable[T], *, executor: str = "lo
     workers = int(workers)
     threads = threads_per_worker or max(1, usable_cores() // workers)
     ahead = max(1, max_in_flight or 2 * workers)
-    plan = _Plan(list(items), needs, build, on_built or (lambda key, value: None), builds_ahead or workers)
+    plan = _Plan(items, needs, build, on_built or (lambda key, value: None), builds_ahead or workers)
     if executor == "ray":
         return _scheduled(plan, fn, ahead, lambda: _RayBackend(workers, address, threads))
     if workers == 1:
