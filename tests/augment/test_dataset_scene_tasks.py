@@ -64,3 +64,15 @@ def test_ray_builds_the_scenes_in_parallel_and_writes_the_same_bytes(two_scene_d
             a = (tmp_path / "one.zarr.work" / "scenes" / g / name).read_bytes()
             b = (tmp_path / "ray.zarr.work" / "scenes" / g / name).read_bytes()
             assert a == b, (g, name)
+
+
+def test_a_scene_built_where_this_machine_cannot_see_it_is_named(tmp_path):
+    """A cluster node that built a scene into a work folder the driver does not share: one line naming both."""
+    from umi_aug.augment.exporter import _check_scene_visible
+    from umi_aug.errors import AugmentError
+
+    _check_scene_visible("ep000000", {"folder": str(tmp_path), "host": "node7", "seconds": 1.0})  # visible: fine
+    with pytest.raises(AugmentError, match=r"scene ep000001 was built on node7 into .*/elsewhere/ep000001, which "
+                                           r"this machine .* cannot see: .*--work"):
+        _check_scene_visible("ep000001", {"folder": str(tmp_path / "elsewhere" / "ep000001"), "host": "node7",
+                                          "seconds": 1.0})
