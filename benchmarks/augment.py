@@ -173,7 +173,8 @@ def _render_profile(assets, n_frames: int = 24) -> dict:
     originals = overlay_originals(assets, d, overlay_sources(assets, planned, ks))
     for k, orig in zip(ks, originals):
         out = render_composed(assets.gaussians, [], planned.episode.T_world_cam[k], intr, background=(0.0, 0.0, 0.0),
-                              near=cfg.render_near_m, far=cfg.render_far_m)
+                              near=cfg.render_near_m, far=cfg.render_far_m,
+                              min_transmittance=cfg.render_min_transmittance)
         for key in ("project", "bin", "raster", "total"):
             acc[key] += out.meta["timings"][key]
         for key in ("n_visible", "n_isects", "n_evals"):

@@ -84,3 +84,43 @@ def test_obstacle_fit_iterations_in_the_keys_only_when_changed():
     for bad in (0, -3, 2.5, True):
         with pytest.raises(AugmentError, match="fit_iterations"):
             AugmentConfig(obstacle=ObstacleConfig(fit_iterations=bad))
+
+
+def test_render_min_transmittance_setting():
+    """The export's early-termination threshold: defaults to the renderer's (INRIA / gsplat 1e-4), refused out of
+    (0, 1) in one line naming the field, and part of the export's run key when it is not the default (a resumed
+    export never mixes frames rendered with two thresholds)."""
+    from umi_aug.augment.exporter import _run_key
+    from umi_aug.splat._constants import TRANSMITTANCE_THRESHOLD
+
+    assert AugmentConfig().render_min_transmittance == TRANSMITTANCE_THRESHOLD
+    for bad in (0.0, 1.0, -1e-3, float("nan"), True, "0.01"):
+        with pytest.raises(AugmentError, match="render_min_transmittance"):
+            AugmentConfig(render_min_transmittance=bad)
+    keys = {_run_key(AugmentConfig(render_min_transmittance=t), "fp") for t in (1e-4, 1.0 / 255.0, 0.01)}
+    assert len(keys) == 3
+
+
+def test_render_min_transmittance_reaches_the_new_frames(aug_assets):
+    """``render_view`` (the new frames of the export, the on-the-fly Dataset and square) renders with the config's
+    threshold: the same pixels as ``render_composed`` at that threshold, other pixels than the default where
+    pixels terminate early."""
+    import dataclasses
+
+    import numpy as np
+
+    from umi_aug.augment.render import render_view
+    from umi_aug.splat.compose import render_composed, rgb_to_uint8
+
+    d = aug_assets.augmentable[0]
+    T = aug_assets.demo(d).T_world_cam[0]
+    cfg = aug_assets.cfg
+    views = {}
+    for t in (1e-4, 0.3):
+        handle = dataclasses.replace(aug_assets, cfg=dataclasses.replace(cfg, render_min_transmittance=t))
+        handle.memo = aug_assets.memo  # the loaded scene, shared
+        views[t] = render_view(handle, T)
+        want = render_composed(aug_assets.gaussians, [], T, aug_assets.policy_intrinsics, background=(0.0, 0.0, 0.0),
+                               near=cfg.render_near_m, far=cfg.render_far_m, min_transmittance=t)
+        assert np.array_equal(views[t], rgb_to_uint8(want.rgb))
+    assert not np.array_equal(views[1e-4], views[0.3])

@@ -116,6 +116,9 @@ class AugmentConfig:
             the trajectory validation needs free space around its goal).
         splat / recon / obstacle / overlay / traj: stage settings.
         render_near_m / render_far_m: 3DGS culling distances.
+        render_min_transmittance: early termination of the new frames' 3DGS render: a pixel stops compositing
+            when its transmittance would fall below this (:func:`umi_aug.splat.render`'s ``min_transmittance``;
+            1e-4 = INRIA 3DGS / gsplat). Larger is faster and drops the faint tail of each pixel.
         executor / workers: how the export's episodes are planned and rendered
             (:func:`umi_aug.augment.executor.map_ordered`: ``"local"`` with 1 worker = this process, more =
             spawned processes; ``"ray"``); results are written in job order either way (same dataset).
@@ -145,6 +148,7 @@ class AugmentConfig:
     traj: TrajConfig = field(default_factory=TrajConfig)
     render_near_m: float = 0.01
     render_far_m: float = 20.0
+    render_min_transmittance: float = 1e-4
     executor: str = "local"
     workers: int = 1
     ray_address: str | None = None
@@ -162,6 +166,10 @@ class AugmentConfig:
             raise AugmentError(f"AugmentConfig.cone_half_angle_deg = {self.cone_half_angle_deg}; expected [0, 180]")
         if not (self.cone_radius_m > 0 and math.isfinite(self.cone_radius_m)):
             raise AugmentError(f"AugmentConfig.cone_radius_m = {self.cone_radius_m}; expected metres > 0")
+        t = self.render_min_transmittance
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 < t < 1.0:
+            raise AugmentError(f"AugmentConfig.render_min_transmittance = {t!r}; expected a number in (0, 1) "
+                               f"(1e-4: INRIA 3DGS / gsplat)")
         e = self.jpegxl_effort
         if e is not None and (isinstance(e, bool) or not isinstance(e, int) or not 1 <= e <= 9):
             raise AugmentError(f"AugmentConfig.jpegxl_effort = {e!r}; expected an int in 1..9 or None")

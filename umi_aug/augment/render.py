@@ -61,7 +61,7 @@ def render_view(assets: SessionAssets, T_world_cam: np.ndarray, obstacles: Seque
     cfg = assets.cfg
     out = render_composed(assets.gaussians, list(obstacles), np.asarray(T_world_cam, np.float64),
                           assets.policy_intrinsics, background=(0.0, 0.0, 0.0), near=cfg.render_near_m,
-                          far=cfg.render_far_m)
+                          far=cfg.render_far_m, min_transmittance=cfg.render_min_transmittance)
     return rgb_to_uint8(out.rgb)
 
 
@@ -82,7 +82,7 @@ def _obstacle_over_original(assets: SessionAssets, T_world_cam: np.ndarray, obst
     cfg = assets.cfg
     intr = assets.policy_intrinsics
     T = np.asarray(T_world_cam, np.float64)
-    kw = dict(near=cfg.render_near_m, far=cfg.render_far_m)
+    kw = dict(near=cfg.render_near_m, far=cfg.render_far_m, min_transmittance=cfg.render_min_transmittance)
     with torch.no_grad():
         obstacle = [render(g, T, intr, **kw) for g in obstacles_world]
         if scene_tiles:

@@ -99,9 +99,9 @@ def _fexp_overload(x):  # pragma: no cover - compiled
     return lambda x: np.exp(x)
 
 
-def raster_constants(dtype) -> np.ndarray:
-    """The ``cst`` array of the rasteriser in its working dtype."""
-    return np.array([MAX_ALPHA, ALPHA_THRESHOLD, TRANSMITTANCE_THRESHOLD, 1.0, 0.5, 0.0], dtype=dtype)
+def raster_constants(dtype, min_transmittance: float = TRANSMITTANCE_THRESHOLD) -> np.ndarray:
+    """The ``cst`` array of the rasteriser in its working dtype (``min_transmittance``: where a pixel stops)."""
+    return np.array([MAX_ALPHA, ALPHA_THRESHOLD, min_transmittance, 1.0, 0.5, 0.0], dtype=dtype)
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -120,12 +120,14 @@ def _render_reference(
     near: float = DEFAULT_NEAR,
     far: float = DEFAULT_FAR,
     pixel_chunk: int | None = None,
+    min_transmittance: float = TRANSMITTANCE_THRESHOLD,
 ) -> RenderOutput:
     """Reference of :func:`umi_aug.splat.render`: dense float64 render with its semantics (differentiable by autograd).
 
     ``meta["near_threshold"]`` ([H, W] bool) marks pixels where a (Gaussian, pixel) alpha lies within
-    ``AMBIGUITY_BAND`` (relative) of ``ALPHA_THRESHOLD`` or a transmittance within it of
-    ``TRANSMITTANCE_THRESHOLD``: there a float32 renderer may legitimately take the other branch.
+    ``AMBIGUITY_BAND`` (relative) of ``ALPHA_THRESHOLD`` or a transmittance within it of ``min_transmittance``
+    (early termination, default ``TRANSMITTANCE_THRESHOLD``): there a float32 renderer may legitimately take the
+    other branch.
     """
     g = gaussians.to(torch.float64)
     H, W = intr.height, intr.width
@@ -158,7 +160,7 @@ def _render_reference(
         skip = (alpha < ALPHA_THRESHOLD) | (power > 0)
         alpha = torch.where(skip, torch.zeros_like(alpha), alpha)
         T_incl = torch.cumprod(1.0 - alpha, dim=1)
-        alive = T_incl >= TRANSMITTANCE_THRESHOLD
+        alive = T_incl >= min_transmittance
         alpha = torch.where(alive, alpha, torch.zeros_like(alpha))
         one_minus = 1.0 - alpha
         T_excl = torch.cat([torch.ones_like(one_minus[:, :1]), torch.cumprod(one_minus, dim=1)[:, :-1]], dim=1)
@@ -168,7 +170,7 @@ def _render_reference(
         t_parts.append(torch.prod(one_minus, dim=1))
         with torch.no_grad():
             near_a = ((raw / ALPHA_THRESHOLD - 1.0).abs() < AMBIGUITY_BAND).any(dim=1)
-            near_t = ((T_incl / TRANSMITTANCE_THRESHOLD - 1.0).abs() < AMBIGUITY_BAND).any(dim=1)
+            near_t = ((T_incl / min_transmittance - 1.0).abs() < AMBIGUITY_BAND).any(dim=1)
             amb_parts.append(near_a | near_t)
     rgb_acc = torch.cat(rgb_parts).reshape(H, W, 3)
     depth_acc = torch.cat(d_parts).reshape(H, W)

@@ -37,7 +37,7 @@ from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import SplatError
 from umi_aug.geometry.se3_torch import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from umi_aug.io_utils import atomic_path
-from umi_aug.splat._constants import DEFAULT_FAR, DEFAULT_FILTER, DEFAULT_NEAR, SH_COEFFS
+from umi_aug.splat._constants import DEFAULT_FAR, DEFAULT_FILTER, DEFAULT_NEAR, SH_COEFFS, TRANSMITTANCE_THRESHOLD
 from umi_aug.splat.gaussians import Gaussians
 from umi_aug.splat.sh import sh_basis
 
@@ -55,7 +55,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Keyword arguments of :func:`umi_aug.splat.render` that :func:`render_composed` accepts (inference path).
-COMPOSE_RENDER_KWARGS: frozenset[str] = frozenset({"filter", "near", "far"})
+COMPOSE_RENDER_KWARGS: frozenset[str] = frozenset({"filter", "near", "far", "min_transmittance"})
 #: Decimals to which poses are rounded in cache keys (1e-12 m / rad: float noise of a recomputed pose maps to the
 #: same key; any real motion does not).
 POSE_KEY_DECIMALS: int = 12
@@ -178,7 +178,7 @@ def transform_gaussians(gaussians: Gaussians, T_world_obj: np.ndarray) -> Gaussi
 # --------------------------------------------------------------------------------------------------------------
 # Composition (inference path)
 # --------------------------------------------------------------------------------------------------------------
-def _render_settings(render_kwargs: dict[str, Any]) -> tuple[str, float, float]:
+def _render_settings(render_kwargs: dict[str, Any]) -> tuple[str, float, float, float]:
     unknown = set(render_kwargs) - COMPOSE_RENDER_KWARGS
     if unknown:
         raise SplatError(
@@ -190,7 +190,10 @@ def _render_settings(render_kwargs: dict[str, Any]) -> tuple[str, float, float]:
     far = float(render_kwargs.get("far", DEFAULT_FAR))
     if not (0.0 <= near < far):
         raise SplatError(f"need 0 <= near < far, got near={near!r}, far={far!r}")
-    return filt, near, far
+    from umi_aug.splat.renderer import check_min_transmittance  # lazy, start-up: numba
+
+    t_min = check_min_transmittance(render_kwargs.get("min_transmittance", TRANSMITTANCE_THRESHOLD))
+    return filt, near, far, t_min
 
 
 def render_composed(
@@ -217,7 +220,7 @@ def render_composed(
         intr: KB fisheye intrinsics (image size included).
         background: RGB behind everything (default black).
         sh_degree: SH degree to evaluate (default: each set's own; capped at each set's degree).
-        **render_kwargs: ``filter``, ``near``, ``far`` as in :func:`umi_aug.splat.render`.
+        **render_kwargs: ``filter``, ``near``, ``far``, ``min_transmittance`` as in :func:`umi_aug.splat.render`.
 
     Returns:
         :class:`umi_aug.splat.renderer.RenderOutput`; ``meta["ids"]`` index the concatenation
@@ -238,7 +241,7 @@ def render_composed(
     dtype = scene.dtype
     if dtype not in (torch.float32, torch.float64):
         raise SplatError(f"render_composed supports float32 and float64 scenes, got {dtype}")
-    filt, near, far = _render_settings(render_kwargs)
+    filt, near, far, t_min = _render_settings(render_kwargs)
     if sh_degree is not None and not 0 <= int(sh_degree) <= 3:
         raise SplatError(f"sh_degree must be in [0, 3], got {sh_degree!r}")
     H, W = intr.height, intr.width
@@ -273,7 +276,7 @@ def render_composed(
     t1 = time.perf_counter()
     binning = bin_gaussians(packed, np.arange(V, dtype=np.int64), depth64, W, H, counts)
     t2 = time.perf_counter()
-    out = rasterize_packed(packed, binning, uv64, fused=True)
+    out = rasterize_packed(packed, binning, uv64, fused=True, min_transmittance=t_min)
     t3 = time.perf_counter()
     rgb, alpha, ray_depth = compose_background_numpy(out, bg)
     meta = {
@@ -358,7 +361,7 @@ class RenderCache:
         max_bytes: memory budget for cached images (bytes).
         disk_dir: optional folder of the on-disk store.
         render_kwargs: settings passed to :func:`render_composed` for every render (``sh_degree``, ``filter``,
-            ``near``, ``far``); part of every key.
+            ``near``, ``far``, ``min_transmittance``); part of every key.
     """
 
     def __init__(self, max_bytes: int = 512 << 20, disk_dir: str | Path | None = None, *,

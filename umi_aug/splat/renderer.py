@@ -27,7 +27,7 @@ import torch
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.errors import SplatError
 from umi_aug.splat import _kernels as K
-from umi_aug.splat._constants import DEFAULT_FAR, DEFAULT_FILTER, DEFAULT_NEAR, TILE_SIZE
+from umi_aug.splat._constants import DEFAULT_FAR, DEFAULT_FILTER, DEFAULT_NEAR, TILE_SIZE, TRANSMITTANCE_THRESHOLD
 from umi_aug.splat.gaussians import Gaussians
 from umi_aug.splat.project import camera_from_pose, check_filter, project_gaussians
 
@@ -187,9 +187,25 @@ def _pixel_coords(binning: Binning, dtype) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(TILE_SIZE, dtype=dtype), np.arange(TILE_SIZE, dtype=dtype)
 
 
-def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray, fused: bool = False
-                     ) -> dict[str, np.ndarray]:
+def check_min_transmittance(min_transmittance: float) -> float:
+    """``min_transmittance`` as a float; raises :class:`SplatError` unless it is finite and in (0, 1)."""
+    try:
+        v = float(min_transmittance)
+    except (TypeError, ValueError):
+        raise SplatError(f"min_transmittance must be a number in (0, 1), got {min_transmittance!r}") from None
+    if not 0.0 < v < 1.0:
+        raise SplatError(f"min_transmittance must be in (0, 1) (a pixel stops compositing when its transmittance "
+                         f"would fall below it; default {TRANSMITTANCE_THRESHOLD}), got {min_transmittance!r}")
+    return v
+
+
+def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray, fused: bool = False,
+                     min_transmittance: float = TRANSMITTANCE_THRESHOLD) -> dict[str, np.ndarray]:
     """Forward rasterisation in the dtype of ``packed`` (``uv64 [G, 2]``: the means in float64).
+
+    ``min_transmittance``: a pixel stops at the first Gaussian that would bring its transmittance below this
+    (early termination; the default is the INRIA/gsplat 1e-4). Raising it skips the faint tail of each pixel's
+    compositing (inference only: the backward assumes the default).
 
     ``fused``: inference only — float32 ``packed`` runs the kernel compiled with fused multiply-adds
     (``K.raster_fwd_fused_kernel``, ~x1.16; results within rounding of the plain one); float64 (the tests'
@@ -211,7 +227,7 @@ def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray, fus
     with _parallel(16 * binning.n_isects + H * W, PARALLEL_CHUNK):
         (K.raster_fwd_fused_kernel if fused and dt == np.float32 else K.raster_fwd_kernel)(
             packed, uv64, binning.tile_start, binning.sorted_row, W, H, binning.tiles_x, xs, ys,
-            K.raster_constants(dt), out["rgb"], out["depth"], out["T"], out["last"], out["evals"],
+            K.raster_constants(dt, min_transmittance), out["rgb"], out["depth"], out["T"], out["last"], out["evals"],
         )
     return out
 
@@ -376,6 +392,7 @@ def render(
     far: float = DEFAULT_FAR,
     projection: Literal["auto", "numba", "torch"] = "auto",
     tiles: np.ndarray | None = None,
+    min_transmittance: float = TRANSMITTANCE_THRESHOLD,
 ) -> RenderOutput:
     """Render a fisheye image of ``gaussians`` from ``T_world_cam`` (CPU, numba).
 
@@ -402,6 +419,10 @@ def render(
         tiles: ``[tiles_y, tiles_x]`` bool (16x16-pixel tiles, e.g. :func:`tiles_covering`): rasterise only these
             tiles — their pixels equal the full render's exactly, every other pixel is the background
             (``alpha`` 0). Inference only (no gradients, numba projection).
+        min_transmittance: early termination: a pixel stops at the first Gaussian that would bring its
+            transmittance below this (default 1e-4, as INRIA 3DGS and gsplat). A larger value skips the faint
+            tail of each pixel (fewer evaluations; the skipped Gaussians' colour is missing, at most this
+            fraction of the pixel). Inference only (the default when gradients are needed).
 
     Returns:
         :class:`RenderOutput`.
@@ -432,6 +453,10 @@ def render(
     if tiles is not None and use_torch:
         raise SplatError("render(tiles=...) renders part of the image for inference only: call it without "
                          "gradients and with projection 'auto' or 'numba'")
+    t_min = check_min_transmittance(min_transmittance)
+    if use_torch and t_min != TRANSMITTANCE_THRESHOLD:
+        raise SplatError(f"render(min_transmittance={min_transmittance!r}) is inference only: the differentiable "
+                         f"path stops at the default {TRANSMITTANCE_THRESHOLD}; call it without gradients")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if use_torch:
@@ -455,7 +480,7 @@ def render(
             binning = restrict_binning(binning, tiles)
         t2 = time.perf_counter()
         timings["bin"] = t2 - t1
-        out = rasterize_packed(packed, binning, uv64, fused=True)
+        out = rasterize_packed(packed, binning, uv64, fused=True, min_transmittance=t_min)
         timings["raster"] = time.perf_counter() - t2
         rgb, alpha, ray_depth = compose_background_numpy(out, bg)
         ids = torch.from_numpy(rows)
