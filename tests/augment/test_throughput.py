@@ -190,3 +190,64 @@ def test_jpegxl_effort_is_checked():
     assert _effort_arg("default") is None and _effort_arg("7") == 7
     with pytest.raises(AugmentError, match="--jpegxl-effort"):
         _effort_arg("fast")
+
+
+def _spec_chunks(spec, frames):
+    """``encode_with_spec`` in a fresh process (what an episode task on another worker does)."""
+    from umi_aug.augment.encode import encode_with_spec
+
+    return [c for c, _ in encode_with_spec(spec, frames)]
+
+
+@pytest.mark.parametrize("write_empty_chunks", [True, False])
+def test_chunks_encoded_from_a_spec_in_another_process_are_the_bytes_zarr_writes(write_empty_chunks):
+    """``encode_in_task``: a spawned process with only the array's :class:`ChunkSpec` (pickled) makes the chunk
+    bytes zarr itself stores — JPEG-XL effort 4 included (the export's setting), and a fill-value frame left out
+    where zarr leaves it out."""
+    import multiprocessing as mp
+    import pickle
+
+    import zarr
+
+    from umi_aug.augment.encode import chunk_spec
+    from umi_aug.data.codecs import register_codecs, umi_image_codec_from
+
+    rng = _fresh_rng()
+    n, size = 5, 40
+    frames = _smooth_frames(rng, n, size)
+    frames[2] = 0
+    register_codecs()
+    comp = umi_image_codec_from(None, effort=4)
+    ref = zarr.zeros((n, size, size, 3), chunks=(1, size, size, 3), dtype=np.uint8, compressor=comp,
+                     write_empty_chunks=write_empty_chunks)
+    ref[:] = frames
+    spec = chunk_spec(ref)
+    assert pickle.loads(pickle.dumps(spec)) == spec and "effort" in spec.compressor_json
+    with mp.get_context("spawn").Pool(1) as pool:
+        chunks = pool.apply(_spec_chunks, (spec, frames))
+    for i, c in enumerate(chunks):
+        k = ref._chunk_key((i, 0, 0, 0))
+        want = bytes(ref.store[k]) if k in ref.store else None
+        assert (None if c is None else bytes(c)) == want, i
+    assert (chunks[2] is None) == (not write_empty_chunks)
+
+
+def test_export_with_tasks_encoding_is_byte_identical_to_the_reference(aug_session, aug_work, tmp_path):
+    """Two worker processes that encode their episodes' frames (``encode_in_task``) write the same dataset, byte
+    for byte, as one process on the reference paths."""
+    import dataclasses
+
+    from umi_aug.augment import export
+    from umi_aug.augment.exporter import FAST_PATHS
+
+    assert "encode_in_task" in FAST_PATHS
+    cfg = small_config(mode="freespace", n_per_demo=3)
+    ref = export(aug_session, tmp_path / "ref.zarr", cfg, work_dir=aug_work, progress=False, pictures=False,
+                 fast_paths=())
+    fast = export(aug_session, tmp_path / "tasks.zarr", dataclasses.replace(cfg, workers=2), work_dir=aug_work,
+                  progress=False, pictures=False, fast_paths=("encode_in_task",))
+    assert ref.n_augmented == fast.n_augmented == 3
+    assert ref.timings_s["encode_s"] == 0 and fast.timings_s["encode_s"] > 0  # the tasks encoded
+    a, b = _stored_chunks(tmp_path / "ref.zarr"), _stored_chunks(tmp_path / "tasks.zarr")
+    assert a.keys() == b.keys()
+    assert [k for k in a if a[k] != b[k]] == []

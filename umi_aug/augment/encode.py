@@ -11,16 +11,25 @@ compressor) from the array zarr itself would encode, so the stored bytes are ide
 
 Only arrays with one frame per chunk (UMI's ``camera*_rgb`` layout: chunks ``(1, H, W, C)``) take the fast path;
 :func:`can_encode_ahead` says whether an array qualifies, anything else uses the reference path.
+
+Encoding inside the episode tasks (issue #34; fast path ``encode_in_task``, used with more than one worker): a task
+on another process or machine has no handle on the output array, so :func:`chunk_spec` describes what its chunks
+are made with (dtype, chunk shape, order, fill value, empty-chunk rule, filters and compressor configs; small and
+picklable) and :func:`encode_with_spec` makes the same chunk bytes there, from an in-memory array of that
+description — zarr's own ``_encode_chunk`` again, so the stored bytes do not depend on where a frame was encoded.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FrameEncoder", "can_encode_ahead", "write_encoded", "encode_frame_chunks"]
+__all__ = ["FrameEncoder", "can_encode_ahead", "write_encoded", "encode_frame_chunks", "ChunkSpec", "chunk_spec",
+           "encode_with_spec"]
 
 
 def can_encode_ahead(arr) -> bool:
@@ -45,6 +54,64 @@ def encode_frame_chunks(arr, frames: np.ndarray) -> list[bytes | None]:
     """The chunk bytes zarr would store for ``frames [n, H, W, C]`` written to ``arr`` (this thread)."""
     frames = np.asarray(frames)
     return [_encode_one(arr, frames[i:i + 1])[0] for i in range(len(frames))]
+
+
+@dataclass(frozen=True)
+class ChunkSpec:
+    """What the chunks of a frame array are made with (JSON of zarr's ``.zarray`` fields that encoding reads):
+    ``dtype`` (numpy str), ``chunks``, ``order``, ``fill_value`` (JSON), ``write_empty_chunks``, ``filters`` and
+    ``compressor`` (numcodecs configs as JSON text, None for none). Picklable and hashable."""
+
+    dtype: str
+    chunks: tuple[int, ...]
+    order: str
+    fill_value_json: str
+    write_empty_chunks: bool
+    filters_json: str
+    compressor_json: str
+
+
+def chunk_spec(arr) -> ChunkSpec:
+    """The :class:`ChunkSpec` of a zarr array of frames (one frame per chunk: :func:`can_encode_ahead`)."""
+    if not can_encode_ahead(arr):
+        raise ValueError(f"chunk_spec: array chunks {arr.chunks} for shape {arr.shape} are not one frame each")
+    fill = arr.fill_value
+    fill = fill.item() if isinstance(fill, np.generic) else fill
+    return ChunkSpec(dtype=np.dtype(arr.dtype).str, chunks=tuple(int(c) for c in arr.chunks), order=str(arr.order),
+                     fill_value_json=json.dumps(fill), write_empty_chunks=bool(arr.write_empty_chunks),
+                     filters_json=json.dumps([f.get_config() for f in (arr.filters or [])]),
+                     compressor_json=json.dumps(None if arr.compressor is None else arr.compressor.get_config()))
+
+
+#: In-memory arrays of the specs this process has encoded with (one per spec: an export has one image array).
+_SPEC_ARRAYS: dict[ChunkSpec, object] = {}
+
+
+def _array_of(spec: ChunkSpec):
+    arr = _SPEC_ARRAYS.get(spec)
+    if arr is None:
+        import numcodecs  # lazy, start-up: zarr
+        import zarr
+
+        from umi_aug.data.codecs import register_codecs  # the export's JPEG-XL codec, in this process too
+
+        register_codecs()
+        comp = json.loads(spec.compressor_json)
+        arr = zarr.create(shape=spec.chunks, chunks=spec.chunks, dtype=np.dtype(spec.dtype), order=spec.order,
+                          fill_value=json.loads(spec.fill_value_json), store=zarr.storage.MemoryStore(),
+                          write_empty_chunks=spec.write_empty_chunks,
+                          compressor=None if comp is None else numcodecs.get_codec(comp),
+                          filters=[numcodecs.get_codec(f) for f in json.loads(spec.filters_json)] or None)
+        _SPEC_ARRAYS[spec] = arr
+    return arr
+
+
+def encode_with_spec(spec: ChunkSpec, frames: np.ndarray) -> list[tuple[bytes | None, float]]:
+    """``(chunk bytes, seconds)`` of each of ``frames [n, H, W, C]`` as the array ``spec`` describes would store
+    it (None: no chunk stored), made in this process: the bytes of :func:`encode_frame_chunks` on that array."""
+    arr = _array_of(spec)
+    frames = np.asarray(frames)
+    return [_encode_one(arr, frames[i:i + 1]) for i in range(len(frames))]
 
 
 class FrameEncoder:

@@ -191,18 +191,19 @@ def _decoder_config(codec) -> dict:
     return cfg
 
 
-def append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_arr, src_rows: np.ndarray,
+def append_episode(buf, lowdim: dict[str, np.ndarray], new_frames: np.ndarray | None, src_arr, src_rows: np.ndarray,
                    encoded: list | None = None) -> float:
     """Append one episode like :meth:`ReplayBuffer.add_episode` (data first, ``meta/episode_ends`` LAST): the
     ``new_frames`` [n, S, S, 3] are encoded, the tail frames are the source array's rows ``src_rows`` copied as
     stored (compressed chunks, no decode/re-encode; a chunk missing in the source is the fill value there and is
     left missing here). ``encoded``: the new frames' chunks already encoded (futures of
-    :meth:`umi_aug.augment.encode.FrameEncoder.submit`; the same bytes) — otherwise zarr encodes them here
-    (the reference path). Returns the seconds spent encoding on the encoder's threads (0 on the reference path)."""
+    :meth:`umi_aug.augment.encode.FrameEncoder.submit`, or ``(bytes, seconds)`` pairs made by an episode task;
+    the same bytes; ``new_frames`` may then be None) — otherwise zarr encodes them here (the reference path).
+    Returns the seconds spent encoding on the encoder's threads or in the task (0 on the reference path)."""
     keys = sorted([*lowdim, IMAGE_KEY])
     if keys != buf.keys():
         raise AugmentError(f"{buf.name}: episode keys {keys} differ from the dataset's {buf.keys()}")
-    n, m = len(new_frames), len(src_rows)
+    n, m = len(encoded) if encoded is not None else len(new_frames), len(src_rows)
     L = n + m
     for k, v in lowdim.items():
         arr = buf[k]

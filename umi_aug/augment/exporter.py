@@ -39,7 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from umi_aug.augment.config import AugmentConfig, config_hash, obstacle_key
-from umi_aug.augment.encode import FrameEncoder, can_encode_ahead
+from umi_aug.augment.encode import FrameEncoder, can_encode_ahead, chunk_spec, encode_with_spec
 from umi_aug.augment.executor import map_ordered, usable_cores
 from umi_aug.augment.export_report import ExportSummary, export_pictures
 from umi_aug.augment.export_store import (ATTR, IMAGE_KEY, RECORD_KEYS, add_records, append_episode,
@@ -62,7 +62,7 @@ __all__ = ["FAST_PATHS", "export", "export_jobs"]
 log = logging.getLogger(__name__)
 
 #: Speed-ups of :func:`export` (issue #17), each with its reference path kept (``fast_paths=()``).
-FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead", "obstacle_tiles")
+FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead", "obstacle_tiles", "encode_in_task")
 
 
 def export_jobs(assets: SessionAssets) -> list[tuple[int, str, int]]:
@@ -80,7 +80,10 @@ def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
                        cfg.include_original,
                        # the codec's effort changes the stored bytes; None (the library default) keeps the key of
                        # exports made before the setting existed
-                       *(() if cfg.jpegxl_effort is None else (("jpegxl_effort", cfg.jpegxl_effort),)))
+                       *(() if cfg.jpegxl_effort is None else (("jpegxl_effort", cfg.jpegxl_effort),)),
+                       # early termination changes the new frames; the default keeps earlier exports' keys
+                       *(() if cfg.render_min_transmittance == 1e-4
+                         else (("render_min_transmittance", cfg.render_min_transmittance),)))
 
 
 @dataclass
@@ -94,12 +97,13 @@ class _JobResult:
     plan_s: float
     render_s: float
     scene_s: float = 0.0  # the demo's scene built (or read from its cache) for this job by a lazy source
+    encoded: list | None = None  # encode_in_task: the new frames' chunks, (bytes | None, seconds) each; frames None
 
 
 def _job_task(args) -> _JobResult:
     """One export job (top-level, picklable: runs in this process or on an executor's worker): plan (or load the
     cached plan), then render the new frames — and the replayed ones too when they cannot be copied raw."""
-    assets, j, job, key, raw_ok, overlay_cache, obstacle_tiles = args
+    assets, j, job, key, raw_ok, overlay_cache, obstacle_tiles, spec = args
     d, m, a = job
     t_scene = time.perf_counter()
     assets = assets.for_demo(d)  # the demo's scene (built by its scene task before this job, else here)
@@ -125,7 +129,11 @@ def _job_task(args) -> _JobResult:
         n = planned.splice_index if copy_tail else planned.n_frames
         frames = render_episode_frames(assets, planned, range(n), cache_originals=overlay_cache,
                                        obstacle_tiles=obstacle_tiles)
-    return _JobResult(j, planned, attempts, reasons, frames, copy_tail, t1 - t0, time.perf_counter() - t1, scene_s)
+    t2 = time.perf_counter()
+    if spec is not None and frames is not None:  # encode_in_task: the chunks travel back, not the frames
+        return _JobResult(j, planned, attempts, reasons, None, copy_tail, t1 - t0, t2 - t1, scene_s,
+                          encoded=encode_with_spec(spec, frames))
+    return _JobResult(j, planned, attempts, reasons, frames, copy_tail, t1 - t0, t2 - t1, scene_s)
 
 
 def _scene_task(assets: SessionAssets, scene: str) -> dict:
@@ -197,7 +205,9 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
             episode; ``"encode_ahead"`` — new frames are JPEG-XL encoded on ``encode_threads`` threads (default:
             the usable cores) while the next episode renders; ``"obstacle_tiles"`` — on the replayed frames of
             an obstacle episode the scene's depth (for the obstacle's depth test) is rasterised only in the
-            tiles where the obstacle shows.
+            tiles where the obstacle shows; ``"encode_in_task"`` — with more than one worker, each episode task
+            encodes its own new frames (:func:`umi_aug.augment.encode.encode_with_spec`) and sends back the chunks,
+            so the driver only stores them (it no longer encodes every worker's frames).
         source: the :class:`~umi_aug.augment.sources.InputSource` of ``session_dir``, opened by the caller
             (e.g. the square benchmark's ``SquareSource`` with its settings); default:
             ``open_source(session_dir, dataset_input)``.
@@ -389,7 +399,12 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
         bar = tqdm(total=len(jobs), initial=start, desc="augment", unit="episode", disable=not progress,
                    dynamic_ncols=True)
         overlay_cache, obstacle_tiles = "overlay_cache" in fast, "obstacle_tiles" in fast
-        tasks = ((assets, j, jobs[j], key, raw_ok, overlay_cache, obstacle_tiles) for j in range(start, len(jobs)))
+        # encode_in_task: with several workers the tasks encode (one process renders and encodes alike: it keeps
+        # encode_ahead's threads, which overlap the next render)
+        spec = (chunk_spec(buf[IMAGE_KEY]) if "encode_in_task" in fast and cfg.workers > 1 and IMAGE_KEY in buf
+                and can_encode_ahead(buf[IMAGE_KEY]) else None)
+        tasks = ((assets, j, jobs[j], key, raw_ok, overlay_cache, obstacle_tiles, spec)
+                 for j in range(start, len(jobs)))
         # encode_ahead: a finished episode's new frames are encoded on threads while the next one renders; it is
         # committed (records, data, meta/episode_ends, progress attribute — in the reference's order) when the next
         # result arrives or at the end, so a kill loses at most that one episode (resume redoes it).
@@ -446,7 +461,9 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
                     timings["render_s"] += res.render_s
                     while pending:
                         commit(*pending.pop(0))
-                    if encoder is not None and res.planned is not None and res.frames is not None:
+                    if res.encoded is not None:
+                        commit(res, res.encoded)
+                    elif encoder is not None and res.planned is not None and res.frames is not None:
                         pending.append((res, encoder.submit(res.frames)))
                     else:
                         commit(res, None)
