@@ -124,3 +124,30 @@ def test_render_min_transmittance_reaches_the_new_frames(aug_assets):
                                near=cfg.render_near_m, far=cfg.render_far_m, min_transmittance=t)
         assert np.array_equal(views[t], rgb_to_uint8(want.rgb))
     assert not np.array_equal(views[1e-4], views[0.3])
+
+
+def test_splat_stage_scale_reg_reaches_the_trainer():
+    """``SplatStageConfig.scale_reg`` is passed to ``SplatTrainConfig`` (an ``extra`` entry of the same name wins),
+    is part of the stage's hashed config, and is refused when negative or not a finite number."""
+    from umi_aug.augment import SplatStageConfig
+    from umi_aug.splat.train import SplatTrainConfig
+
+    sc = SplatStageConfig(iterations=10, max_gaussians=100, scale_reg=0.5)
+    tcfg = SplatTrainConfig(seed=0, **sc.train_kwargs())
+    assert (tcfg.scale_reg, tcfg.iterations, tcfg.max_gaussians) == (0.5, 10, 100)
+    assert SplatTrainConfig(**SplatStageConfig(scale_reg=0.5, extra={"scale_reg": 0.2}).train_kwargs()).scale_reg == 0.2
+    assert config_hash(SplatStageConfig(scale_reg=0.5)) != config_hash(SplatStageConfig(scale_reg=0.01))
+    # the keys: scale_reg at the trainer's 0.01 hashes like the settings before the field existed (stage caches and
+    # exports trained that way keep their keys); any other value changes the key
+    import dataclasses
+
+    from umi_aug.augment.config import TRAINER_SCALE_REG, splat_key
+
+    assert SplatTrainConfig().scale_reg == TRAINER_SCALE_REG
+    old = SplatStageConfig(scale_reg=TRAINER_SCALE_REG)
+    before = {f.name: getattr(old, f.name) for f in dataclasses.fields(old) if f.name != "scale_reg"}
+    assert config_hash(splat_key(old)) == config_hash(before)
+    assert config_hash(splat_key(SplatStageConfig(scale_reg=1.0))) != config_hash(before)
+    for bad in (-0.1, float("nan"), float("inf"), True, "1"):
+        with pytest.raises(AugmentError, match="scale_reg"):
+            AugmentConfig(splat=SplatStageConfig(scale_reg=bad))

@@ -39,4 +39,24 @@ def test_freespace_augmentation_through_umis_construction_path(aug_session, tmp_
     # the stage cache records the 3DGS settings it was built with: a second dataset takes them from there
     from umi_aug.umi_compat.dataset import _cached_splat_settings
 
-    assert _cached_splat_settings(tmp_path / "work")["iterations"] == 0
+    from umi_aug.augment.config import SESSION_SPLAT_SCALE_REG
+
+    cached = _cached_splat_settings(tmp_path / "work")
+    assert cached["iterations"] == 0 and cached["scale_reg"] == SESSION_SPLAT_SCALE_REG  # a session's default
+
+
+def test_cached_splat_settings_of_a_cache_from_before_scale_reg(tmp_path):
+    """A stage cache trained before ``SplatStageConfig.scale_reg`` existed (its settings have no such key) was
+    trained with the trainer's 0.01: that value is what a dataset reusing the cache asks for (the same stage key,
+    no retraining); no manifest, no settings."""
+    import json
+
+    from umi_aug.augment.config import TRAINER_SCALE_REG
+    from umi_aug.umi_compat.dataset import _cached_splat_settings
+
+    assert _cached_splat_settings(tmp_path / "work") == {}
+    (tmp_path / "work" / "splat").mkdir(parents=True)
+    (tmp_path / "work" / "splat" / "manifest.json").write_text(json.dumps(
+        {"settings": {"splat": {"iterations": 1500, "max_gaussians": 25000, "sh_degree": 3}}}))
+    assert _cached_splat_settings(tmp_path / "work") == {"iterations": 1500, "max_gaussians": 25000,
+                                                         "scale_reg": TRAINER_SCALE_REG}

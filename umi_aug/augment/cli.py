@@ -38,10 +38,10 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
     p.add_argument("--cone-deg", type=float, default=50.0, help="start cone half-angle θ (degrees)")
     p.add_argument("--cone-radius", type=float, default=0.15, help="start sphere radius r (metres)")
     p.add_argument("--splat-iterations", type=int, default=None,
-                   help="3DGS training steps (0 = untrained init; default 4000 for a session's scan, "
+                   help="3DGS training steps (0 = untrained init; default 1500 for a session's scan, "
                         f"{DATASET_SPLAT_ITERATIONS} for a plain dataset's episode frames)")
     p.add_argument("--splat-max-gaussians", type=int, default=None,
-                   help=f"3DGS Gaussian budget (default 60000 for a session, {DATASET_SPLAT_MAX_GAUSSIANS} for a dataset)")
+                   help=f"3DGS Gaussian budget (default 25000 for a session, {DATASET_SPLAT_MAX_GAUSSIANS} for a dataset)")
     p.add_argument("--sfm-mode", choices=("known_poses", "full"), default="known_poses")
     p.add_argument("--obstacle", action="append", default=None, metavar="ASSET",
                    help="obstacle asset (box/cylinder/bottle/mug or a mesh path); repeatable")
@@ -85,7 +85,8 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
 
 def config_from_args(args: argparse.Namespace):
     """The :class:`AugmentConfig` of parsed arguments."""
-    from umi_aug.augment.config import AugmentConfig, ObstacleConfig, OverlayConfig, SplatStageConfig
+    from umi_aug.augment.config import (DATASET_SPLAT_SCALE_REG, AugmentConfig, ObstacleConfig, OverlayConfig,
+                                        SplatStageConfig)
     from umi_aug.augment.sources import source_kind
 
     base = AugmentConfig()
@@ -99,7 +100,8 @@ def config_from_args(args: argparse.Namespace):
     return AugmentConfig(
         mode=args.mode, n_per_demo=args.n_per_demo, seed=args.seed, image_size=args.image_size,
         cone_half_angle_deg=args.cone_deg, cone_radius_m=args.cone_radius, max_attempts=args.max_attempts,
-        splat=SplatStageConfig(iterations=iterations, max_gaussians=max_gaussians),
+        splat=SplatStageConfig(iterations=iterations, max_gaussians=max_gaussians,
+                               scale_reg=DATASET_SPLAT_SCALE_REG if dataset else base.splat.scale_reg),
         recon=dataclasses.replace(base.recon, sfm=dataclasses.replace(base.recon.sfm, mode=args.sfm_mode)),
         obstacle=ObstacleConfig(assets=tuple(args.obstacle)) if args.obstacle else ObstacleConfig(),
         overlay=OverlayConfig(mask=args.mask, mirrors=args.mirrors), include_original=not args.no_original,

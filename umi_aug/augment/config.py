@@ -19,11 +19,24 @@ from umi_aug.recon.pipeline import ReconConfig
 from umi_aug.recon.sfm import SfmConfig
 from umi_aug.traj.config import TrajConfig
 
-__all__ = ["MODES", "SplatStageConfig", "ObstacleConfig", "OverlayConfig", "AugmentConfig", "config_hash",
-           "jsonable", "modes_of"]
+__all__ = ["MODES", "SESSION_SPLAT_ITERATIONS", "SESSION_SPLAT_MAX_GAUSSIANS", "SESSION_SPLAT_SCALE_REG",
+           "DATASET_SPLAT_SCALE_REG", "TRAINER_SCALE_REG", "splat_key", "SplatStageConfig", "ObstacleConfig",
+           "OverlayConfig", "AugmentConfig", "config_hash", "jsonable", "modes_of"]
 
 #: Augmentation modes of one episode (``both`` in :class:`AugmentConfig` runs each of them).
 MODES: tuple[str, ...] = ("freespace", "obstacle")
+#: 3DGS of a session's scene (scan + demos): the knee of the render quality/speed trade-off on the synthetic session
+#: (``benchmarks/render_tradeoff.py``, ``docs/real_scale.md`` section 4): 1,500 steps, 25k Gaussians, scale
+#: regulariser 1.0 — 982 episodes/h at 26.8 dB against the ground truth, where the earlier 4,000 steps / 60k /
+#: 0.01 gave 400/h at 28.4 dB (4,000 / 60k / 1.0: 695/h at 28.1 dB).
+SESSION_SPLAT_ITERATIONS: int = 1500
+SESSION_SPLAT_MAX_GAUSSIANS: int = 25_000
+SESSION_SPLAT_SCALE_REG: float = 1.0
+#: :attr:`SplatStageConfig.scale_reg` of a plain dataset's scenes (a demo's own frames): the trainer's default, as
+#: before — 1.0 was chosen on the synthetic session; on the real episode see ``docs/real_scale.md`` section 4.
+DATASET_SPLAT_SCALE_REG: float = 0.01
+#: ``SplatTrainConfig.scale_reg``'s default: what every scene was trained with before the setting existed.
+TRAINER_SCALE_REG: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -33,16 +46,28 @@ class SplatStageConfig:
     Attributes:
         iterations: optimisation steps; max_gaussians: densification budget; sh_degree: 0..3;
         holdout_every: every n-th frame held out for PSNR/SSIM; image_size: training width (height keeps the
-        aspect ratio) or None (the frames' size); extra: further ``SplatTrainConfig`` fields by name (e.g.
-        learning rates). ``iterations = 0``: no training, the SfM-initialised Gaussians (smoke runs only).
+        aspect ratio) or None (the frames' size);
+        scale_reg: weight of ``mean(scale / scene_scale)`` in the loss (``SplatTrainConfig.scale_reg``; the
+            trainer's own default, 3DGS-MCMC's, is 0.01). Smaller Gaussians cover fewer pixels each, so every new
+            frame composites fewer of them: on the synthetic session 1.0 composites 1.9-2.6x fewer per pixel than
+            0.01 (export 1.3-1.7x faster) for 0.6-0.7 dB held-out; on the real episode's 600 steps it cost 1.7 dB
+            (``docs/real_scale.md`` section 4, issue #34 item 4);
+        extra: further ``SplatTrainConfig`` fields by name (e.g. learning rates; a ``scale_reg`` here wins).
+        ``iterations = 0``: no training, the SfM-initialised Gaussians (smoke runs only).
     """
 
-    iterations: int = 4000
-    max_gaussians: int = 60_000
+    iterations: int = SESSION_SPLAT_ITERATIONS
+    max_gaussians: int = SESSION_SPLAT_MAX_GAUSSIANS
     sh_degree: int = 3
     holdout_every: int = 8
     image_size: int | None = None
+    scale_reg: float = SESSION_SPLAT_SCALE_REG
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def train_kwargs(self) -> dict[str, Any]:
+        """The ``SplatTrainConfig`` fields this stage sets (``extra`` last: it overrides)."""
+        return {"iterations": self.iterations, "max_gaussians": self.max_gaussians, "sh_degree": self.sh_degree,
+                "holdout_every": self.holdout_every, "scale_reg": self.scale_reg, **dict(self.extra)}
 
 
 #: :attr:`ObstacleConfig.fit_iterations`' default (= ``umi_aug.splat.obstacle_gaussians.ObstacleGaussianConfig``'s)
@@ -166,6 +191,9 @@ class AugmentConfig:
             raise AugmentError(f"AugmentConfig.cone_half_angle_deg = {self.cone_half_angle_deg}; expected [0, 180]")
         if not (self.cone_radius_m > 0 and math.isfinite(self.cone_radius_m)):
             raise AugmentError(f"AugmentConfig.cone_radius_m = {self.cone_radius_m}; expected metres > 0")
+        sr = self.splat.scale_reg
+        if isinstance(sr, bool) or not isinstance(sr, (int, float)) or not (sr >= 0.0 and math.isfinite(sr)):
+            raise AugmentError(f"SplatStageConfig.scale_reg = {sr!r}; expected a finite number >= 0")
         t = self.render_min_transmittance
         if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 < t < 1.0:
             raise AugmentError(f"AugmentConfig.render_min_transmittance = {t!r}; expected a number in (0, 1) "
@@ -197,6 +225,13 @@ def obstacle_key(obstacle: ObstacleConfig) -> dict[str, Any]:
     keys of work folders and exports made before that setting existed stay the same)."""
     return {f.name: getattr(obstacle, f.name) for f in dataclasses.fields(obstacle)
             if not (f.name == "fit_iterations" and obstacle.fit_iterations == OBSTACLE_FIT_ITERATIONS)}
+
+
+def splat_key(splat: SplatStageConfig) -> dict[str, Any]:
+    """The 3DGS settings as cache keys hash them: every field, except ``scale_reg`` at the trainer's default 0.01
+    (what scenes were trained with before the setting existed, so their stage caches and exports keep their keys)."""
+    return {f.name: getattr(splat, f.name) for f in dataclasses.fields(splat)
+            if not (f.name == "scale_reg" and splat.scale_reg == TRAINER_SCALE_REG)}
 
 
 def modes_of(mode: str) -> tuple[str, ...]:

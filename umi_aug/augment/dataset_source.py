@@ -43,7 +43,7 @@ import numpy as np
 from tqdm import tqdm
 
 from umi_aug.augment.cache import StageResult, build_lock, run_stage
-from umi_aug.augment.config import AugmentConfig
+from umi_aug.augment.config import AugmentConfig, splat_key
 from umi_aug.augment.obstacle_stage import check_obstacle_assets
 from umi_aug.augment.preflight import MAX_STEP_DEG, MAX_STEP_M
 from umi_aug.augment.scene_grouping import group_by_place
@@ -591,8 +591,7 @@ def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, EpisodePos
             write_ply(out / "scene.ply", init_only_gaussians(scene.path("cloud"), sc.sh_degree))
             return {"ply": "scene.ply"}, ["scene.ply"], {"trained": False}
         views, intr = dataset_views(dataset, demos, splice, cfg.image_size, inp.view_stride)
-        tcfg = SplatTrainConfig(iterations=sc.iterations, max_gaussians=sc.max_gaussians, sh_degree=sc.sh_degree,
-                                holdout_every=sc.holdout_every, seed=cfg.seed, **dict(sc.extra))
+        tcfg = SplatTrainConfig(seed=cfg.seed, **sc.train_kwargs())
         rng = np.random.default_rng([cfg.seed, 0x1A17])
         Tv = np.stack([v.T_world_cam for v in views])
         xyz, rgb = read_point_cloud(scene.path("cloud"))
@@ -615,7 +614,7 @@ def _stage_splat(work: Path, dataset: Path, fp: str, demos: dict[int, EpisodePos
                 "train_seconds": float(res.history[-1]["seconds"]) if res.history else None}
         return {"ply": rel}, [rel], info
 
-    conf = {"splat": sc, "seed": cfg.seed, "view_stride": inp.view_stride, "bg": (inp.background_points,
+    conf = {"splat": splat_key(sc), "seed": cfg.seed, "view_stride": inp.view_stride, "bg": (inp.background_points,
                                                                                   inp.background_radius)}
     return run_stage("splat", work, conf, {"dataset": fp, "scene": scene.key, "contact": contact.key}, fn)
 

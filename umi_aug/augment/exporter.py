@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from umi_aug.augment.config import AugmentConfig, config_hash, obstacle_key
+from umi_aug.augment.config import AugmentConfig, config_hash, obstacle_key, splat_key
 from umi_aug.augment.encode import FrameEncoder, can_encode_ahead, chunk_spec, encode_with_spec
 from umi_aug.augment.executor import map_ordered, usable_cores
 from umi_aug.augment.export_report import ExportSummary, export_pictures
@@ -75,7 +75,8 @@ def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
     # Everything that changes the episodes' content (not: workers, executor); the overlay-mask rule is code, not
     # config, so its version is part of the key too.
     return config_hash("export", 1, OVERLAY_MASK_RULE, fingerprint, cfg.seed, cfg.mode, cfg.n_per_demo, cfg.cone_half_angle_deg,
-                       cfg.cone_radius_m, cfg.max_extra_rotation_deg, cfg.image_size, cfg.max_attempts, cfg.splat,
+                       cfg.cone_radius_m, cfg.max_extra_rotation_deg, cfg.image_size, cfg.max_attempts,
+                       splat_key(cfg.splat),
                        cfg.recon, obstacle_key(cfg.obstacle), cfg.overlay, cfg.traj, cfg.render_near_m, cfg.render_far_m,
                        cfg.include_original,
                        # the codec's effort changes the stored bytes; None (the library default) keeps the key of

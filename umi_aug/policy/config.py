@@ -175,8 +175,10 @@ class AugConfig:
     cone_half_angle_deg: float = 50.0
     cone_radius_m: float = 0.15
     #: 3DGS training of the session scene (iterations, Gaussian budget)
-    splat_iterations: int = 4000
-    splat_max_gaussians: int = 60000
+    splat_iterations: int = 1500
+    splat_max_gaussians: int = 25000
+    #: 3DGS scale regulariser; None = umi-aug's default for the input (a session: 1.0, a plain dataset: 0.01)
+    splat_scale_reg: Optional[float] = None
     #: planned episodes kept per DataLoader worker (LRU)
     plan_cache_size: int = 256
     #: plain UMI dataset input (no session folder): UMI's camera→TCP ``tcp_offset`` (m) and episodes per scene:

@@ -49,7 +49,9 @@ log = logging.getLogger(__name__)
 def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: TrainConfig):
     """``aug=freespace|obstacle|both``: prepare the session holding ``dataset_path`` (cached stages) and wrap the
     original training split in an :class:`~umi_aug.policy.augmented_dataset.AugmentedUmiDataset`."""
-    from umi_aug.augment import AugmentConfig, SplatStageConfig, prepare_session  # lazy, start-up: cv2, scipy
+    # lazy, start-up: cv2, scipy
+    from umi_aug.augment import AugmentConfig, SplatStageConfig, prepare_session
+    from umi_aug.augment.config import DATASET_SPLAT_SCALE_REG, SESSION_SPLAT_SCALE_REG
 
     a = cfg.aug
     session = Path(a.session_dir).absolute() if a.session_dir else dataset_path.parent
@@ -66,7 +68,10 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
     acfg = AugmentConfig(mode=modes[0] if len(modes) == 1 else "both", seed=a.seed,
                          cone_half_angle_deg=a.cone_half_angle_deg, cone_radius_m=a.cone_radius_m,
                          image_size=cfg.task.image_size,
-                         splat=SplatStageConfig(iterations=a.splat_iterations, max_gaussians=a.splat_max_gaussians))
+                         splat=SplatStageConfig(iterations=a.splat_iterations, max_gaussians=a.splat_max_gaussians,
+                                                scale_reg=(a.splat_scale_reg if a.splat_scale_reg is not None else
+                                                           DATASET_SPLAT_SCALE_REG if plain else
+                                                           SESSION_SPLAT_SCALE_REG)))
     if plain:
         from umi_aug.augment.dataset_source import (DatasetInput, parse_scene_group,  # lazy, start-up: cv2
                                                     prepare_dataset)

@@ -259,13 +259,19 @@ def _cache_copy(dataset_path: Path, cache_dir: str | os.PathLike) -> Path:
 
 
 def _cached_splat_settings(work_dir: Path) -> dict:
-    """The 3DGS settings (``iterations``, ``max_gaussians``) a prepared session's stage cache was trained with
-    (``<work_dir>/splat/manifest.json``), or {} when there is none."""
-    from umi_aug.augment.cache import read_manifest  # lazy, start-up: cv2, scipy
+    """The 3DGS settings (``iterations``, ``max_gaussians``, ``scale_reg``) a prepared session's stage cache was
+    trained with (``<work_dir>/splat/manifest.json``), or {} when there is none. A cache without ``scale_reg`` was
+    trained with the trainer's 0.01 (the key leaves that value out)."""
+    # lazy, start-up: cv2, scipy
+    from umi_aug.augment.cache import read_manifest
+    from umi_aug.augment.config import TRAINER_SCALE_REG
 
     man = read_manifest(work_dir / "splat") or {}
     splat = (man.get("settings") or {}).get("splat") or {}
-    return {k: int(splat[k]) for k in ("iterations", "max_gaussians") if isinstance(splat.get(k), int)}
+    out: dict = {k: int(splat[k]) for k in ("iterations", "max_gaussians") if isinstance(splat.get(k), int)}
+    if out:
+        out["scale_reg"] = float(splat.get("scale_reg", TRAINER_SCALE_REG))
+    return out
 
 
 def _grasp_flags(ds) -> np.ndarray:
@@ -295,7 +301,7 @@ class UmiAugDataset(_dataset_base()):
         n_aug_per_demo: distinct augmentations (start pose / obstacle) per demo.
         aug_seed: root seed of the augmented episodes and slot draws.
         splat_iterations / splat_max_gaussians: 3DGS training of the scene; None = what the stage cache in
-            ``work_dir`` was trained with, else umi-aug's defaults (4000 / 60000).
+            ``work_dir`` was trained with, else umi-aug's defaults (1500 / 25000).
         cone_half_angle_deg / cone_radius_m: start-pose cone (paper: 50°, 0.15 m).
         plan_cache_size: planned episodes kept per DataLoader worker.
         tcp_offset_m / scene_group: plain-dataset input (UMI's camera→TCP offset in metres; episodes per scene,
@@ -403,6 +409,8 @@ class UmiAugDataset(_dataset_base()):
                       ratio=float(ratio), n_aug_per_demo=int(n_aug_per_demo), seed=int(aug_seed),
                       cone_half_angle_deg=float(cone_half_angle_deg), cone_radius_m=float(cone_radius_m),
                       splat_iterations=int(iters), splat_max_gaussians=int(budget),
+                      # the cached scene's regulariser when the 3DGS settings come from the cache, else the default
+                      splat_scale_reg=cached.get("scale_reg") if splat_iterations is None else None,
                       plan_cache_size=int(plan_cache_size), tcp_offset_m=float(tcp_offset_m),
                       scene_group=scene_group)
         check_aug(a)

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from umi_aug.augment.cache import StageResult, run_stage
-from umi_aug.augment.config import AugmentConfig
+from umi_aug.augment.config import AugmentConfig, splat_key
 from umi_aug.augment.obstacle_stage import check_obstacle_assets, start_obstacle_prefit
 from umi_aug.augment.preflight import InputCheck, check_demo_trajectories, check_session_inputs
 from umi_aug.augment.session_assets import OBSTACLE_WORK_KEY, DemoInfo, SessionAssets
@@ -159,8 +159,7 @@ def _stage_splat(session_dir: Path, work: Path, cfg: AugmentConfig, fp: str, rec
         except ImportError as exc:
             raise AugmentError("the splat stage needs umi_aug.splat.train (fisheye 3DGS training); it is not "
                                f"importable here ({exc}); set splat.iterations = 0 for an untrained scene") from exc
-        tcfg = SplatTrainConfig(iterations=sc.iterations, max_gaussians=sc.max_gaussians, sh_degree=sc.sh_degree,
-                                holdout_every=sc.holdout_every, seed=cfg.seed, **dict(sc.extra))
+        tcfg = SplatTrainConfig(seed=cfg.seed, **sc.train_kwargs())
         rows = json.loads((contact.dir / "contacts.json").read_text())
         contacts = {r["name"]: int(r["splice_index"]) for r in rows if r["splice_index"] is not None}
         if beside_training is not None:
@@ -176,7 +175,7 @@ def _stage_splat(session_dir: Path, work: Path, cfg: AugmentConfig, fp: str, rec
                 "gaussians": int(res.gaussians.n)}
         return {"ply": rel}, [rel], info
 
-    return run_stage("splat", work, {"splat": sc, "seed": cfg.seed},
+    return run_stage("splat", work, {"splat": splat_key(sc), "seed": cfg.seed},
                      {"session": fp, "reconstruct": recon.key, "contact": contact.key}, fn)
 
 
