@@ -98,6 +98,7 @@ def jittered_dataset(session: Path, out: Path, episodes: tuple[int, ...] = (0, 1
 def build(setting: str, session: Path, work: Path, iterations: int | None):
     """Demo 0's assets of the setting (scene built or loaded from ``work``) and the seconds it took."""
     from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
+    from umi_aug.augment.config import DATASET_SPLAT_SCALE_REG
     from umi_aug.augment.config import AugmentConfig, SplatStageConfig
     from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset
     from umi_aug.augment.sources.session import prepare_session
@@ -110,7 +111,7 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
         assets = prepare_session(session, work, dataclasses.replace(cfg, mode="freespace"), progress=False)
         return assets, time.perf_counter() - t0
     splat = SplatStageConfig(iterations=iterations or DATASET_SPLAT_ITERATIONS,
-                             max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS)
+                             max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS, scale_reg=DATASET_SPLAT_SCALE_REG)
     cfg = dataclasses.replace(base, mode="freespace", splat=splat)
     pooled = setting == "two demos pooled"
     inp = DatasetInput(episodes=(0, 1) if pooled else (0,), scene_group=2 if pooled else 1,

@@ -40,18 +40,21 @@ SETTINGS: dict[str, dict[str, object]] = {
     "3DGS 1200 steps": {"splat.iterations": 1200},
     "3DGS 15k Gaussians": {"splat.max_gaussians": 15_000},
     "no background shell": {"inp.background_points": 0},
+    "3DGS scale_reg 1.0 (0.01)": {"splat.scale_reg": 1.0},
 }
 
 
 def configs(overrides: dict[str, object]):
     """``(AugmentConfig, DatasetInput)`` of ``umi-aug augment <dataset>``'s defaults with ``overrides``."""
     from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
+    from umi_aug.augment.config import DATASET_SPLAT_SCALE_REG
     from umi_aug.augment.config import AugmentConfig, SplatStageConfig
     from umi_aug.augment.dataset_source import DatasetInput
 
     base = AugmentConfig()
     sfm = dataclasses.replace(base.recon.sfm, mode="known_poses")
-    splat = SplatStageConfig(iterations=DATASET_SPLAT_ITERATIONS, max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS)
+    splat = SplatStageConfig(iterations=DATASET_SPLAT_ITERATIONS, max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS,
+                             scale_reg=DATASET_SPLAT_SCALE_REG)
     inp = DatasetInput()
     for key, value in overrides.items():
         part, name = key.split(".", 1)
