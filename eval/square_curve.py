@@ -154,7 +154,8 @@ def report(record_dir: Path) -> Path:
         rows = sorted(_rows(f), key=lambda r: r["step"])
         if not rows:
             continue
-        m = [r["train_minutes"] for r in rows]
+        # a row may record minutes its training process spent paused (SIGSTOP, for benchmarks on idle cores)
+        m = [r["train_minutes"] - r.get("paused_minutes", 0.0) for r in rows]
         axes[0].plot(m, [100 * r["success"] for r in rows], "o-", label=f.stem)
         axes[1].plot(m, [100 * (r["pregrasp"] or 0) for r in rows], "o-", label=f.stem)
     for ax, what in zip(axes, ("full-task success", "pre-grasp reached")):
