@@ -93,7 +93,9 @@ def test_render_min_transmittance_setting():
     from umi_aug.augment.exporter import _run_key
     from umi_aug.splat._constants import TRANSMITTANCE_THRESHOLD
 
-    assert AugmentConfig().render_min_transmittance == TRANSMITTANCE_THRESHOLD
+    from umi_aug.augment.config import DEFAULT_RENDER_MIN_TRANSMITTANCE
+
+    assert AugmentConfig().render_min_transmittance == DEFAULT_RENDER_MIN_TRANSMITTANCE == TRANSMITTANCE_THRESHOLD
     for bad in (0.0, 1.0, -1e-3, float("nan"), True, "0.01"):
         with pytest.raises(AugmentError, match="render_min_transmittance"):
             AugmentConfig(render_min_transmittance=bad)

@@ -20,8 +20,9 @@ from umi_aug.recon.sfm import SfmConfig
 from umi_aug.traj.config import TrajConfig
 
 __all__ = ["MODES", "SESSION_SPLAT_ITERATIONS", "SESSION_SPLAT_MAX_GAUSSIANS", "SESSION_SPLAT_SCALE_REG",
-           "DATASET_SPLAT_SCALE_REG", "TRAINER_SCALE_REG", "splat_key", "SplatStageConfig", "ObstacleConfig",
-           "OverlayConfig", "AugmentConfig", "config_hash", "jsonable", "modes_of"]
+           "DATASET_SPLAT_SCALE_REG", "TRAINER_SCALE_REG", "DEFAULT_RENDER_MIN_TRANSMITTANCE", "splat_key",
+           "SplatStageConfig", "ObstacleConfig", "OverlayConfig", "AugmentConfig", "config_hash", "jsonable",
+           "modes_of"]
 
 #: Augmentation modes of one episode (``both`` in :class:`AugmentConfig` runs each of them).
 MODES: tuple[str, ...] = ("freespace", "obstacle")
@@ -35,6 +36,9 @@ SESSION_SPLAT_SCALE_REG: float = 1.0
 #: :attr:`SplatStageConfig.scale_reg` of a plain dataset's scenes (a demo's own frames): the trainer's default, as
 #: before — 1.0 was chosen on the synthetic session; on the real episode see ``docs/real_scale.md`` section 4.
 DATASET_SPLAT_SCALE_REG: float = 0.01
+#: :attr:`AugmentConfig.render_min_transmittance`'s default: the renderer's early termination
+#: (``umi_aug.splat._constants.TRANSMITTANCE_THRESHOLD``, INRIA 3DGS / gsplat), not imported here (no splat at import)
+DEFAULT_RENDER_MIN_TRANSMITTANCE: float = 1e-4
 #: ``SplatTrainConfig.scale_reg``'s default: what every scene was trained with before the setting existed.
 TRAINER_SCALE_REG: float = 0.01
 
@@ -173,7 +177,7 @@ class AugmentConfig:
     traj: TrajConfig = field(default_factory=TrajConfig)
     render_near_m: float = 0.01
     render_far_m: float = 20.0
-    render_min_transmittance: float = 1e-4
+    render_min_transmittance: float = DEFAULT_RENDER_MIN_TRANSMITTANCE
     executor: str = "local"
     workers: int = 1
     ray_address: str | None = None

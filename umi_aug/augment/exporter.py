@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from umi_aug.augment.config import AugmentConfig, config_hash, obstacle_key, splat_key
+from umi_aug.augment.config import (DEFAULT_RENDER_MIN_TRANSMITTANCE, AugmentConfig, config_hash, obstacle_key,
+                                    splat_key)
 from umi_aug.augment.encode import FrameEncoder, can_encode_ahead, chunk_spec, encode_with_spec
 from umi_aug.augment.executor import map_ordered, usable_cores
 from umi_aug.augment.export_report import ExportSummary, export_pictures
@@ -83,7 +84,7 @@ def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
                        # exports made before the setting existed
                        *(() if cfg.jpegxl_effort is None else (("jpegxl_effort", cfg.jpegxl_effort),)),
                        # early termination changes the new frames; the default keeps earlier exports' keys
-                       *(() if cfg.render_min_transmittance == 1e-4
+                       *(() if cfg.render_min_transmittance == DEFAULT_RENDER_MIN_TRANSMITTANCE
                          else (("render_min_transmittance", cfg.render_min_transmittance),)))
 
 
