@@ -18,8 +18,12 @@ Settings (``--settings``):
 * ``one demo (default)``: the default: plus the far-background shell (``DatasetInput.background_points``), the
   measure aimed at unseen regions (what is behind the seen scene renders as a plausible far background instead of
   black).
-* ``one demo, SfM every 4th frame``: the default with every 4th pre-grasp frame triangulated instead of every
-  2nd (``DatasetInput.sfm_stride``; issue #34 item 1's one free saving on the real episode).
+* ``one demo, before (every 2nd frame, 600 full-size steps)``: the dataset defaults before 2026-11-27: every
+  2nd pre-grasp frame triangulated (``DatasetInput.sfm_stride``) and 600 3DGS steps at full size
+  (``SplatStageConfig.coarse_downscale`` 1); the default since is every 4th frame and 1,200 steps with the first
+  half at half size (27.3 dB held-out on the real episode in less time; ``benchmarks/real_scene_cost.py``).
+  ``--iterations`` does not change it.
+* ``one demo, SfM every 2nd frame``: the default with every 2nd frame triangulated.
 * ``two demos pooled``: both demos' frames build one scene (``--scene-group 2``; the session's demos share the
   tag frame and the table), with the shell: what pooling the episodes of one place does (issue #34 item 2).
 * ``scan + demos``: the session path (``umi-aug augment <session>``): the mapping scan's frames and both demos
@@ -45,8 +49,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-SETTINGS = ("one demo, no shell", "one demo (default)", "one demo, SfM every 4th frame", "two demos pooled",
-            "scan + demos")
+SETTINGS = ("one demo, no shell", "one demo (default)", "one demo, before (every 2nd frame, 600 full-size steps)",
+            "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos")
 
 
 def cone_ring_poses(T_ref: np.ndarray, radius: float, theta: float, n: int) -> np.ndarray:
@@ -98,7 +102,7 @@ def jittered_dataset(session: Path, out: Path, episodes: tuple[int, ...] = (0, 1
 def build(setting: str, session: Path, work: Path, iterations: int | None):
     """Demo 0's assets of the setting (scene built or loaded from ``work``) and the seconds it took."""
     from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
-    from umi_aug.augment.config import DATASET_SPLAT_SCALE_REG
+    from umi_aug.augment.config import DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG
     from umi_aug.augment.config import AugmentConfig, SplatStageConfig
     from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset
     from umi_aug.augment.sources.session import prepare_session
@@ -111,12 +115,16 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
         assets = prepare_session(session, work, dataclasses.replace(cfg, mode="freespace"), progress=False)
         return assets, time.perf_counter() - t0
     splat = SplatStageConfig(iterations=iterations or DATASET_SPLAT_ITERATIONS,
-                             max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS, scale_reg=DATASET_SPLAT_SCALE_REG)
+                             max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS, scale_reg=DATASET_SPLAT_SCALE_REG,
+                             coarse_downscale=DATASET_SPLAT_COARSE_DOWNSCALE)
+    before = "before" in setting
+    if before:
+        splat = dataclasses.replace(splat, iterations=600, coarse_downscale=1)
     cfg = dataclasses.replace(base, mode="freespace", splat=splat)
     pooled = setting == "two demos pooled"
     inp = DatasetInput(episodes=(0, 1) if pooled else (0,), scene_group=2 if pooled else 1,
                        background_points=0 if "no shell" in setting else DatasetInput.background_points,
-                       sfm_stride=4 if "4th" in setting else DatasetInput.sfm_stride)
+                       sfm_stride=2 if (before or "2nd" in setting) else DatasetInput.sfm_stride)
     dataset = jittered_dataset(session, work.parent / "dataset_jittered.zarr.zip")
     assets = prepare_dataset(dataset, work, cfg, inp, progress=False)
     return assets.for_demo(0), time.perf_counter() - t0

@@ -4,7 +4,13 @@ from an empty stage cache — known-pose triangulation (``scene``), distance fie
 pre-contact frame, masked), so error stands against run time for every setting.
 
     python benchmarks/real_scene_cost.py                                  # every setting below
-    python benchmarks/real_scene_cost.py --settings today "3DGS 300 steps"
+    python benchmarks/real_scene_cost.py --settings default "before (every 2nd frame, 600 steps, full size)"
+
+Each setting is one change to the defaults of ``umi-aug augment <dataset>`` (every 4th pre-grasp frame
+triangulated, 1,200 3DGS steps with the first half at half size, 30k Gaussians; rows recorded before 2026-11-27
+session 19 name changes to the earlier defaults: every 2nd frame, 600 full-size steps). The last four columns
+split a 3DGS step (ms per step, averaged over the run): the whole step, the rasteriser and the projection (forward
++ backward each) and the optimiser.
 
 Timings are wall seconds on this machine as it is: run on idle cores (nothing else running) and compare settings
 within one run. Goal (#34): a whole scene in <= 45 s on 2 cores at >= 27 dB held-out.
@@ -31,30 +37,38 @@ REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata" / "umi
 
 #: name → overrides: ``sfm.<field>`` (recon.sfm), ``splat.<field>`` (the 3DGS stage), ``inp.<field>`` (DatasetInput).
 SETTINGS: dict[str, dict[str, object]] = {
-    "today": {},
+    "default": {},
+    "before (every 2nd frame, 600 steps, full size)": {"inp.sfm_stride": 2, "splat.iterations": 600,
+                                                       "splat.coarse_downscale": 1},
     "features 1024": {"sfm.max_num_features": 1024},
     "no x2 upscale for SIFT": {"inp.sfm_upscale": 1},
-    "every 4th frame to SfM": {"inp.sfm_stride": 4},
+    "every 2nd frame to SfM (4th)": {"inp.sfm_stride": 2},
     "overlap 3, no loop grid": {"sfm.overlap": 3, "sfm.loop_stride": 0},
-    "3DGS 300 steps": {"splat.iterations": 300},
-    "3DGS 1200 steps": {"splat.iterations": 1200},
-    "3DGS 15k Gaussians": {"splat.max_gaussians": 15_000},
+    "3DGS 600 steps (1200)": {"splat.iterations": 600},
+    "3DGS full size (first half at 1/2)": {"splat.coarse_downscale": 1},
+    "3DGS coarse for 3/4 of the steps": {"splat.extra": {"coarse_fraction": 0.75}},
+    "3DGS 15k Gaussians (30k)": {"splat.max_gaussians": 15_000},
     "no background shell": {"inp.background_points": 0},
     "3DGS scale_reg 1.0 (0.01)": {"splat.scale_reg": 1.0},
 }
+
+#: The 3DGS step's parts (``SplatTrainResult.timings`` keys) the table shows, in ms per training step.
+STEP_PARTS = {"step ms": ("render", "loss", "backward", "step", "densify"),
+              "raster ms": ("raster", "raster_backward"), "project ms": ("project", "project_backward"),
+              "optimiser ms": ("step",)}
 
 
 def configs(overrides: dict[str, object]):
     """``(AugmentConfig, DatasetInput)`` of ``umi-aug augment <dataset>``'s defaults with ``overrides``."""
     from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
-    from umi_aug.augment.config import DATASET_SPLAT_SCALE_REG
+    from umi_aug.augment.config import DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG
     from umi_aug.augment.config import AugmentConfig, SplatStageConfig
     from umi_aug.augment.dataset_source import DatasetInput
 
     base = AugmentConfig()
     sfm = dataclasses.replace(base.recon.sfm, mode="known_poses")
     splat = SplatStageConfig(iterations=DATASET_SPLAT_ITERATIONS, max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS,
-                             scale_reg=DATASET_SPLAT_SCALE_REG)
+                             scale_reg=DATASET_SPLAT_SCALE_REG, coarse_downscale=DATASET_SPLAT_COARSE_DOWNSCALE)
     inp = DatasetInput()
     for key, value in overrides.items():
         part, name = key.split(".", 1)
@@ -83,12 +97,17 @@ def build_scene(dataset: Path, work: Path, overrides: dict[str, object]) -> dict
     st = {k.split("/", 1)[1]: v for k, v in assets.stages.items() if k.startswith(f"{g}/")}
     scene, splat = st["scene"].info, st["splat"].info
     contact = st["contact"].info["demos"][0]
+    metrics = st["splat"].dir / "metrics.json"
+    m = json.loads(metrics.read_text()) if metrics.is_file() else {}
+    steps = max(int(m.get("config", {}).get("iterations", 0)), 1)
+    profile = {name: round(1e3 * sum(m.get("timings", {}).get(k, 0.0) for k in keys) / steps, 2)
+               for name, keys in STEP_PARTS.items()}
     return {"total_s": total, "contact": contact["contact_index"], "splice": contact["splice_index"],
             "stages_s": {k: round(v.seconds, 2) for k, v in st.items()},
             "registered": scene["sfm"]["registered"], "frames": scene["sfm"]["frames"],
             "points3D": scene["sfm"]["points3D"], "cloud": scene["cloud"]["points"],
             "psnr": splat["heldout_psnr"], "ssim": splat["heldout_ssim"], "gaussians": splat["gaussians"],
-            "splat_train_s": splat["train_seconds"]}
+            "splat_train_s": splat["train_seconds"], "splat_step_profile": profile}
 
 
 def main() -> int:
@@ -124,18 +143,19 @@ def main() -> int:
         rows.append({"setting": name, "overrides": SETTINGS[name], **r})
     t = Table(title="one real episode's scene from an empty cache (seconds, held-out PSNR/SSIM every 8th frame)")
     for c in ("setting", "total s", "scene s", "sdf s", "contact s", "splat s", "mask s", "SfM frames", "points",
-              "contact/splice", "PSNR dB", "SSIM", "Gaussians"):
+              "contact/splice", "PSNR dB", "SSIM", "Gaussians", *STEP_PARTS):
         t.add_column(c, justify="right")
     for r in rows:
         if "failed" in r:
-            t.add_row(r["setting"], f"{r['total_s']:.1f}", *(["-"] * 8), "failed: " + r["failed"][-60:], "-", "-")
+            t.add_row(r["setting"], f"{r['total_s']:.1f}", *(["-"] * 8), "failed: " + r["failed"][-60:], "-", "-",
+                      *(["-"] * len(STEP_PARTS)))
             continue
         s = r["stages_s"]
         t.add_row(r["setting"], f"{r['total_s']:.1f}", *(f"{s.get(k, 0.0):.1f}" for k in
                                                         ("scene", "sdf", "contact", "splat", "gripper_mask")),
                   f"{r['registered']}/{r['frames']}", str(r["points3D"]), f"{r['contact']}/{r['splice']}",
                   f"{r['psnr']:.2f}", f"{r['ssim']:.3f}",
-                  str(r["gaussians"]))
+                  str(r["gaussians"]), *(f"{r['splat_step_profile'][k]:.1f}" for k in STEP_PARTS))
     console.print(t)
     out = Path(args.out) if args.out else work / "real_scene_cost.json"
     atomic_write_text(out, json.dumps(rows, indent=2, default=float) + "\n")

@@ -89,7 +89,10 @@ def main() -> int:
     ap.add_argument("--max-gaussians", type=int, default=30_000)
     ap.add_argument("--eval-every", type=int, default=100)
     ap.add_argument("--variants", nargs="*", default=["random", "sfm", "sfm+bg"])
-    ap.add_argument("--augment", type=int, default=0, help="also run the export with -n N --mode both")
+    ap.add_argument("--augment", type=int, default=0,
+                    help="also run the export with -n N --mode both, with umi-aug augment's defaults for a dataset "
+                         "(3DGS steps, budget, regulariser, coarse-to-fine; --augment-iterations overrides the steps)")
+    ap.add_argument("--augment-iterations", type=int, default=None, help="3DGS steps of the export's scene")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--docs", action="store_true", help="write small JPEG copies of the pictures to docs/real_*.jpg")
     args = ap.parse_args()
@@ -134,8 +137,14 @@ def main() -> int:
         from umi_aug.augment.export_report import summary_table
         from umi_aug.augment.exporter import export
 
+        from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
+        from umi_aug.augment.config import DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG
+
+        its = DATASET_SPLAT_ITERATIONS if args.augment_iterations is None else args.augment_iterations
         cfg = AugmentConfig(mode="both", n_per_demo=args.augment,
-                            splat=SplatStageConfig(iterations=max(args.iterations, 1), max_gaussians=args.max_gaussians))
+                            splat=SplatStageConfig(iterations=its, max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS,
+                                                   scale_reg=DATASET_SPLAT_SCALE_REG,
+                                                   coarse_downscale=DATASET_SPLAT_COARSE_DOWNSCALE))
         t1 = time.perf_counter()
         s = export(ds, work / "augmented.zarr.zip", cfg, work_dir=work / "export_work", resume=False)
         aug = {"wall_s": time.perf_counter() - t1, "n_augmented": s.n_augmented, "n_failed": s.n_failed,

@@ -147,9 +147,20 @@ def test_splat_stage_scale_reg_reaches_the_trainer():
 
     assert SplatTrainConfig().scale_reg == TRAINER_SCALE_REG
     old = SplatStageConfig(scale_reg=TRAINER_SCALE_REG)
-    before = {f.name: getattr(old, f.name) for f in dataclasses.fields(old) if f.name != "scale_reg"}
+    before = {f.name: getattr(old, f.name) for f in dataclasses.fields(old)
+              if f.name not in ("scale_reg", "coarse_downscale")}
     assert config_hash(splat_key(old)) == config_hash(before)
     assert config_hash(splat_key(SplatStageConfig(scale_reg=1.0))) != config_hash(before)
     for bad in (-0.1, float("nan"), float("inf"), True, "1"):
         with pytest.raises(AugmentError, match="scale_reg"):
             AugmentConfig(splat=SplatStageConfig(scale_reg=bad))
+    # coarse-to-fine: full size (1) hashes like the settings before the field existed; 2 is a new key, reaches the
+    # trainer, and must divide the image side
+    assert SplatStageConfig().coarse_downscale == 1 and SplatTrainConfig().coarse_downscale == 1
+    assert "coarse_downscale" not in splat_key(SplatStageConfig(scale_reg=TRAINER_SCALE_REG))
+    assert config_hash(splat_key(SplatStageConfig(scale_reg=TRAINER_SCALE_REG, coarse_downscale=2))) != \
+        config_hash(before)
+    assert SplatTrainConfig(**SplatStageConfig(coarse_downscale=2).train_kwargs()).coarse_stop_step > 0
+    for bad in (0, 3, 2.0, True):
+        with pytest.raises(AugmentError, match="coarse_downscale"):
+            AugmentConfig(image_size=224, splat=SplatStageConfig(coarse_downscale=bad))

@@ -215,7 +215,8 @@ def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
 
     from umi_aug.augment.cli import (DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS, add_augment_parser,
                                      config_from_args)
-    from umi_aug.augment.config import DATASET_SPLAT_SCALE_REG, SESSION_SPLAT_SCALE_REG, AugmentConfig
+    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG,
+                                        SESSION_SPLAT_SCALE_REG, AugmentConfig)
 
     parser = argparse.ArgumentParser()
     add_augment_parser(parser.add_subparsers())
@@ -227,9 +228,14 @@ def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
     cfg = config_from_args(parser.parse_args(["augment", str(ds), "--out", str(tmp_path / "o.zarr.zip")]))
     assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS)
     assert cfg.splat.scale_reg == DATASET_SPLAT_SCALE_REG
+    assert cfg.splat.coarse_downscale == DATASET_SPLAT_COARSE_DOWNSCALE == 2
     cfg = config_from_args(parser.parse_args(["augment", str(session), "--out", str(tmp_path / "o.zarr.zip")]))
     assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (base.iterations, base.max_gaussians)
     assert cfg.splat.scale_reg == base.scale_reg == SESSION_SPLAT_SCALE_REG
+    assert cfg.splat.coarse_downscale == base.coarse_downscale == 1
+    cfg = config_from_args(parser.parse_args(["augment", str(ds), "--out", "o.zarr.zip",
+                                              "--splat-coarse-downscale", "1"]))
+    assert cfg.splat.coarse_downscale == 1
     cfg = config_from_args(parser.parse_args(["augment", str(ds), "--out", "o.zarr.zip", "--splat-iterations", "7",
                                               "--splat-max-gaussians", "900"]))
     assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (7, 900)

@@ -378,6 +378,10 @@ def test_augment_refuses_dataset_only_flags_on_a_session(session, tmp_path, caps
                              "from the camera to the fingertips' TCP along its axis)"),
     ("--cone-radius", "0", "--cone-radius 0.0: must be in (0, 10) metres"),
     ("--workers", "0", "--workers 0: must be >= 1"),
+    ("--splat-coarse-downscale", "0", "--splat-coarse-downscale 0: must be >= 1 and divide --image-size 224 (1 = "
+                                      "full size)"),
+    ("--splat-coarse-downscale", "3", "--splat-coarse-downscale 3: must be >= 1 and divide --image-size 224 (1 = "
+                                      "full size)"),
     ("--jpegxl-effort", "12", "--jpegxl-effort 12: expected an int in 1..9 or 'default'"),
 ])
 def test_augment_flag_ranges_are_checked_before_any_work(tmp_path, capsys, monkeypatch, flag, value, msg):

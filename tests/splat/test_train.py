@@ -166,3 +166,71 @@ def test_session_views_and_masks(tmp_path, rng):
     with pytest.raises(SplatError, match="DEMO=FRAME"):
         args = ap.parse_args(["train-splat", str(root), "--out", str(tmp_path / "o2"), "--contact", "demo_a"])
         args.func(args)
+
+
+def test_coarse_to_fine_trains_coarse_steps_at_the_coarse_size(problem, tmp_path, rng, monkeypatch):
+    """``coarse_downscale=2``: the first ``coarse_fraction`` of the steps render at half size with the halved
+    intrinsics, the rest and every evaluation at full size; the fit still improves like a full-resolution one."""
+    import torch
+
+    import umi_aug.splat.renderer as renderer
+
+    views, intr, init = problem
+    cfg = replace(CFG, coarse_downscale=2, coarse_fraction=0.3, seed=int(rng.integers(1000)))
+    assert cfg.coarse_stop_step == 30
+    calls: list[tuple[bool, int, int]] = []
+    real_render = renderer.render
+
+    def spy(g, T, intr_, *a, **k):
+        calls.append((torch.is_grad_enabled(), intr_.width, intr_.height))
+        return real_render(g, T, intr_, *a, **k)
+
+    monkeypatch.setattr(renderer, "render", spy)
+    res = train_splat(views, intr, init, None, cfg, tmp_path / "c2f", progress=False)
+    train_sizes = [(w, h) for grad, w, h in calls if grad]
+    assert train_sizes == [(SIZE // 2, SIZE // 2)] * 30 + [(SIZE, SIZE)] * 70
+    assert all((w, h) == (SIZE, SIZE) for grad, w, h in calls if not grad)
+    h0, h1 = res.history[0], res.history[-1]
+    assert h1["train_psnr"] > h0["train_psnr"] + 6.0 and h1["heldout_psnr"] > h0["heldout_psnr"] + 3.0, res.history
+    assert all(math.isfinite(h["loss"]) for h in res.history[1:])
+
+
+def test_downscaled_views_are_block_means_with_conservative_masks(problem):
+    from umi_aug.splat.train import _Data
+
+    views, intr, _ = problem
+    data = _Data(views)
+    coarse, c_intr = data.downscaled(intr, 2)
+    assert (c_intr.width, c_intr.height) == (SIZE // 2, SIZE // 2)
+    assert c_intr.cx == pytest.approx((intr.cx + 0.5) / 2 - 0.5) and c_intr.fx == pytest.approx(intr.fx / 2)
+    for v, img, m in zip(views, coarse.images, coarse.masks):
+        area = cv2.resize(v.image.astype(np.float32) / 255.0, (SIZE // 2, SIZE // 2), interpolation=cv2.INTER_AREA)
+        np.testing.assert_allclose(img.numpy(), area, atol=1e-6)
+        full = v.loss_mask
+        want = full[0::2, 0::2] & full[1::2, 0::2] & full[0::2, 1::2] & full[1::2, 1::2]
+        assert np.array_equal(m.numpy(), want) and m.any() and not np.array_equal(m.numpy(), full[::2, ::2])
+    with pytest.raises(SplatError, match=r"coarse_downscale = 5: the image size 48x48"):
+        data.downscaled(intr, 5)
+
+
+def test_coarse_settings_are_checked_and_old_checkpoints_resume(problem, tmp_path):
+    import torch
+
+    views, intr, init = problem
+    for bad in ({"coarse_downscale": 0}, {"coarse_downscale": 1.5}, {"coarse_fraction": 1.2}):
+        with pytest.raises(SplatError, match=next(iter(bad))):
+            train_splat(views, intr, init, cfg=replace(CFG, **bad), progress=False)
+    # a checkpoint written before the coarse settings existed resumes with their defaults (full resolution)
+    cfg = replace(CFG, iterations=30, eval_every=15, checkpoint_every=1000)
+    train_splat(views, intr, init, None, cfg, tmp_path / "old", progress=False, stop_at=10)
+    path = tmp_path / "old" / "checkpoint.pt"
+    ck = torch.load(path, weights_only=False)
+    for key in ("coarse_downscale", "coarse_fraction"):
+        del ck["cfg"][key]
+    torch.save(ck, path)
+    res = train_splat(views, intr, init, None, cfg, tmp_path / "old", progress=False)
+    assert res.history[-1]["iteration"] == 30
+    with pytest.raises(SplatError, match="coarse_downscale"):  # but not into a coarse run
+        ck["iteration"] = 10
+        torch.save(ck, path)
+        train_splat(views, intr, init, None, replace(cfg, coarse_downscale=2), tmp_path / "old", progress=False)

@@ -121,6 +121,49 @@ def test_adam_matches_torch(rng):
     assert opt2.step_count == 5 and torch.equal(opt2.exp_avg["c"], opt.exp_avg["c"])
 
 
+@pytest.mark.parametrize("k", [0, 3, 8])
+def test_adam_active_prefix_equals_the_full_update(rng, k):
+    """Skipping the SH coefficients above the rendered degree (zero gradient, zero moments) changes nothing: the
+    parameters and both moments equal the full update's bit for bit, over steps where the active prefix grows."""
+    shapes = {"means": (9, 3), "sh_rest": (9, 15, 3)}
+    full = {n: torch.as_tensor(rng.normal(size=s)).requires_grad_(True) for n, s in shapes.items()}
+    part = {n: v.detach().clone().requires_grad_(True) for n, v in full.items()}
+    o_full, o_part = GaussianAdam(full), GaussianAdam(part)
+    lrs = {"means": 1e-2, "sh_rest": 3e-3}
+    for step, active in enumerate([k, k, k + 3, k + 3, 15]):
+        g = {n: torch.as_tensor(rng.normal(size=s)) for n, s in shapes.items()}
+        g["sh_rest"][:, active:] = 0.0  # what the renderer gives coefficients above the rendered degree
+        for params, opt, act in ((full, o_full, None), (part, o_part, {"sh_rest": active})):
+            for n in shapes:
+                params[n].grad = g[n].clone()
+            opt.step(lrs, active=act)
+        for n in shapes:
+            assert torch.equal(full[n], part[n]), (step, n)
+            assert torch.equal(o_full.exp_avg[n], o_part.exp_avg[n]) and torch.equal(o_full.exp_avg_sq[n],
+                                                                                   o_part.exp_avg_sq[n])
+    assert torch.isfinite(part["sh_rest"]).all()
+
+
+def test_coefficients_above_the_rendered_degree_get_exactly_zero_gradient(rng):
+    """What makes :meth:`GaussianAdam.step`'s ``active`` prefix exact: a degree-3 scene rendered at degree 1 gives
+    the 12 coefficients of degrees 2-3 an exactly zero gradient, and a non-zero one to the 3 of degree 1."""
+    from umi_aug.splat import Gaussians, render
+    from umi_aug.splat.scenes import look_at_pose
+    from tests.splat._helpers import gopro_small
+
+    n = 60
+    g = Gaussians.from_points(rng.uniform(-0.2, 0.2, (n, 3)), rng.uniform(0.1, 0.9, (n, 3)),
+                              rng.uniform(0.03, 0.06, n), 0.7, sh_degree=3, dtype=torch.float32)
+    sh_rest = torch.as_tensor(rng.normal(0, 0.1, (n, 15, 3)), dtype=torch.float32).requires_grad_(True)
+    g = Gaussians(g.means, g.log_scales, g.quats_wxyz, g.logit_opacities, g.sh0, sh_rest)
+    intr = gopro_small(40, 40)
+    rgb = render(g, look_at_pose(np.array([0.8, 0.3, 0.4]), np.zeros(3)), intr, torch.zeros(3), 1).rgb
+    (rgb * torch.as_tensor(rng.normal(size=rgb.shape), dtype=rgb.dtype)).sum().backward()
+    assert sh_rest.grad is not None and torch.isfinite(sh_rest.grad).all()
+    assert torch.count_nonzero(sh_rest.grad[:, 3:]) == 0
+    assert torch.count_nonzero(sh_rest.grad[:, :3]) > 0
+
+
 # ---------------------------------------------------------------------------------------------- relocation
 def _relocation_loop(o: float, s: float, r: int) -> tuple[float, float]:
     """gsplat's compute_relocation written as its double loop (float64)."""

@@ -46,9 +46,9 @@ def test_freespace_augmentation_through_umis_construction_path(aug_session, tmp_
 
 
 def test_cached_splat_settings_of_a_cache_from_before_scale_reg(tmp_path):
-    """A stage cache trained before ``SplatStageConfig.scale_reg`` existed (its settings have no such key) was
-    trained with the trainer's 0.01: that value is what a dataset reusing the cache asks for (the same stage key,
-    no retraining); no manifest, no settings."""
+    """A stage cache trained before ``SplatStageConfig.scale_reg`` / ``coarse_downscale`` existed (its settings have
+    no such keys) was trained with the trainer's 0.01 at full size: those values are what a dataset reusing the cache
+    asks for (the same stage key, no retraining); no manifest, no settings."""
     import json
 
     from umi_aug.augment.config import TRAINER_SCALE_REG
@@ -59,4 +59,10 @@ def test_cached_splat_settings_of_a_cache_from_before_scale_reg(tmp_path):
     (tmp_path / "work" / "splat" / "manifest.json").write_text(json.dumps(
         {"settings": {"splat": {"iterations": 1500, "max_gaussians": 25000, "sh_degree": 3}}}))
     assert _cached_splat_settings(tmp_path / "work") == {"iterations": 1500, "max_gaussians": 25000,
-                                                         "scale_reg": TRAINER_SCALE_REG}
+                                                         "scale_reg": TRAINER_SCALE_REG, "coarse_downscale": 1}
+    # a coarse-to-fine scene (a plain dataset's default) reports its factor, so the dataset reuses it
+    (tmp_path / "work" / "splat" / "manifest.json").write_text(json.dumps(
+        {"settings": {"splat": {"iterations": 1200, "max_gaussians": 30000, "scale_reg": 0.5,
+                                "coarse_downscale": 2}}}))
+    assert _cached_splat_settings(tmp_path / "work") == {"iterations": 1200, "max_gaussians": 30000,
+                                                         "scale_reg": 0.5, "coarse_downscale": 2}

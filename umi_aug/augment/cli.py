@@ -10,8 +10,10 @@ __all__ = ["add_augment_parser", "cmd_augment", "config_from_args", "dataset_inp
            "source_settings_from_args"]
 
 #: 3DGS defaults for a plain dataset (one episode's ~100 pre-contact 224² frames, not a scan): on UMI's real
-#: "cup in the wild" episode 600 steps reach 25.7 dB held-out (benchmarks/real_umi.py); 4000 would take ~1 h.
-DATASET_SPLAT_ITERATIONS = 600
+#: "cup in the wild" episode 1,200 steps, the first half at half size (``DATASET_SPLAT_COARSE_DOWNSCALE``), reach
+#: 27.3 dB held-out, the whole scene in 124 s on 2 cores with every 4th frame triangulated (600 full-size steps:
+#: 25.7 dB, 149 s with every 2nd; ``benchmarks/real_scene_cost.py``, docs/real_scale.md section 1b).
+DATASET_SPLAT_ITERATIONS = 1200
 DATASET_SPLAT_MAX_GAUSSIANS = 30_000
 #: ``--tcp-offset``: UMI's gripper has 0.205 m; a camera→TCP distance outside this range is a typo (mm, a sign)
 #: that used to fail only minutes later ("no splice frame", "points near the reachable region").
@@ -42,6 +44,9 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
                         f"{DATASET_SPLAT_ITERATIONS} for a plain dataset's episode frames)")
     p.add_argument("--splat-max-gaussians", type=int, default=None,
                    help=f"3DGS Gaussian budget (default 25000 for a session, {DATASET_SPLAT_MAX_GAUSSIANS} for a dataset)")
+    p.add_argument("--splat-coarse-downscale", type=int, default=None, metavar="F",
+                   help="3DGS coarse-to-fine: the first half of the steps on frames downscaled by F (1 = full size; "
+                        "default 1 for a session, 2 for a plain dataset)")
     p.add_argument("--sfm-mode", choices=("known_poses", "full"), default="known_poses")
     p.add_argument("--obstacle", action="append", default=None, metavar="ASSET",
                    help="obstacle asset (box/cylinder/bottle/mug or a mesh path); repeatable")
@@ -85,8 +90,8 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
 
 def config_from_args(args: argparse.Namespace):
     """The :class:`AugmentConfig` of parsed arguments."""
-    from umi_aug.augment.config import (DATASET_SPLAT_SCALE_REG, AugmentConfig, ObstacleConfig, OverlayConfig,
-                                        SplatStageConfig)
+    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG, AugmentConfig,
+                                        ObstacleConfig, OverlayConfig, SplatStageConfig)
     from umi_aug.augment.sources import source_kind
 
     base = AugmentConfig()
@@ -97,11 +102,15 @@ def config_from_args(args: argparse.Namespace):
     max_gaussians = args.splat_max_gaussians
     if max_gaussians is None:
         max_gaussians = DATASET_SPLAT_MAX_GAUSSIANS if dataset else base.splat.max_gaussians
+    coarse = getattr(args, "splat_coarse_downscale", None)
+    if coarse is None:
+        coarse = DATASET_SPLAT_COARSE_DOWNSCALE if dataset else base.splat.coarse_downscale
     return AugmentConfig(
         mode=args.mode, n_per_demo=args.n_per_demo, seed=args.seed, image_size=args.image_size,
         cone_half_angle_deg=args.cone_deg, cone_radius_m=args.cone_radius, max_attempts=args.max_attempts,
         splat=SplatStageConfig(iterations=iterations, max_gaussians=max_gaussians,
-                               scale_reg=DATASET_SPLAT_SCALE_REG if dataset else base.splat.scale_reg),
+                               scale_reg=DATASET_SPLAT_SCALE_REG if dataset else base.splat.scale_reg,
+                               coarse_downscale=int(coarse)),
         recon=dataclasses.replace(base.recon, sfm=dataclasses.replace(base.recon.sfm, mode=args.sfm_mode)),
         obstacle=ObstacleConfig(assets=tuple(args.obstacle)) if args.obstacle else ObstacleConfig(),
         overlay=OverlayConfig(mask=args.mask, mirrors=args.mirrors), include_original=not args.no_original,
@@ -152,6 +161,9 @@ def check_args(args: argparse.Namespace) -> None:
          "must be >= 0 (0 = the untrained initial scene)")
     need(args.splat_max_gaussians is None or args.splat_max_gaussians >= 1, "--splat-max-gaussians",
          args.splat_max_gaussians, "must be >= 1")
+    coarse = getattr(args, "splat_coarse_downscale", None)
+    need(coarse is None or (coarse >= 1 and args.image_size % coarse == 0), "--splat-coarse-downscale", coarse,
+         f"must be >= 1 and divide --image-size {args.image_size} (1 = full size)")
     need(args.max_attempts >= 1, "--max-attempts", args.max_attempts, "must be >= 1")
     need(args.workers >= 1, "--workers", args.workers, "must be >= 1")
     need(args.scene_group is None or _scene_group_arg(args.scene_group) is not None, "--scene-group",

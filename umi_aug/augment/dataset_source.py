@@ -96,7 +96,9 @@ class DatasetInput:
             ``max_scene_episodes`` per scene.
         scene_map: explicit groups ``{group name: [episode, ...]}`` (overrides ``scene_group``); episodes not
             named get a scene of their own.
-        sfm_stride: every n-th pre-closing frame enters the triangulation.
+        sfm_stride: every n-th pre-closing frame enters the triangulation (4: on the real cup episode a quarter
+            of every 2nd frame's time at the same 3DGS quality; on the synthetic session -0.3 dB held-out and up to
+            -0.6 dB at far cone starts: docs/real_scale.md sections 1, 1b and 5).
         sfm_upscale: frames are enlarged this many times (bicubic) for SIFT: 224² policy frames give few
             features (563 points on the real cup episode at x1).
         view_stride: every n-th pre-splice frame is a 3DGS view.
@@ -110,7 +112,7 @@ class DatasetInput:
     scene_group: int | str = 1
     max_scene_episodes: int = 4
     scene_map: Mapping[str, Sequence[int]] | None = None
-    sfm_stride: int = 2
+    sfm_stride: int = 4
     sfm_upscale: int = 2
     view_stride: int = 1
     background_points: int = 4000

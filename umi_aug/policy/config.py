@@ -179,6 +179,9 @@ class AugConfig:
     splat_max_gaussians: int = 25000
     #: 3DGS scale regulariser; None = umi-aug's default for the input (a session: 1.0, a plain dataset: 0.01)
     splat_scale_reg: Optional[float] = None
+    #: 3DGS coarse-to-fine factor (first half of the steps at 1/F size); None = by input (a session: 1, a plain
+    #: dataset: 2)
+    splat_coarse_downscale: Optional[int] = None
     #: planned episodes kept per DataLoader worker (LRU)
     plan_cache_size: int = 256
     #: plain UMI dataset input (no session folder): UMI's camera→TCP ``tcp_offset`` (m) and episodes per scene:

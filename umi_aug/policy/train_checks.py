@@ -58,6 +58,7 @@ RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "aug.splat_iterations": _int_at_least(1),
     "aug.splat_max_gaussians": _int_at_least(1),
     "aug.splat_scale_reg": _pos_float(zero_ok=True, none_ok=True),
+    "aug.splat_coarse_downscale": _int_at_least(1, none_ok=True),
     "aug.plan_cache_size": _int_at_least(1),
     "aug.scene_group": (scene_group_ok, "must be an integer >= 1 or 'auto'"),
     "aug.tcp_offset_m": _pos_float(zero_ok=True),

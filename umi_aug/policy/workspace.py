@@ -51,7 +51,8 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
     original training split in an :class:`~umi_aug.policy.augmented_dataset.AugmentedUmiDataset`."""
     # lazy, start-up: cv2, scipy
     from umi_aug.augment import AugmentConfig, SplatStageConfig, prepare_session
-    from umi_aug.augment.config import DATASET_SPLAT_SCALE_REG, SESSION_SPLAT_SCALE_REG
+    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG,
+                                        SESSION_SPLAT_SCALE_REG)
 
     a = cfg.aug
     session = Path(a.session_dir).absolute() if a.session_dir else dataset_path.parent
@@ -71,7 +72,10 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
                          splat=SplatStageConfig(iterations=a.splat_iterations, max_gaussians=a.splat_max_gaussians,
                                                 scale_reg=(a.splat_scale_reg if a.splat_scale_reg is not None else
                                                            DATASET_SPLAT_SCALE_REG if plain else
-                                                           SESSION_SPLAT_SCALE_REG)))
+                                                           SESSION_SPLAT_SCALE_REG),
+                                                coarse_downscale=(a.splat_coarse_downscale
+                                                                  if a.splat_coarse_downscale is not None else
+                                                                  DATASET_SPLAT_COARSE_DOWNSCALE if plain else 1)))
     if plain:
         from umi_aug.augment.dataset_source import (DatasetInput, parse_scene_group,  # lazy, start-up: cv2
                                                     prepare_dataset)

@@ -87,6 +87,13 @@ class SplatTrainConfig:
         fast_projection: numba projection with its hand-written backward
             (:class:`umi_aug.splat.project.ProjectGaussians`); False: the torch-autograd reference (same results
             up to rounding, slower).
+        coarse_downscale, coarse_fraction: coarse-to-fine training. The first ``round(coarse_fraction x
+            iterations)`` steps train on the views downscaled by the integer ``coarse_downscale`` (the mean of each
+            ``f x f`` block; a coarse pixel is in the loss only if all its full pixels are), rendered with the
+            matching intrinsics (``FisheyeIntrinsics.scaled``, exact for that block mean); the rest at full
+            resolution. A coarse step costs the rasteriser and the loss ~1/f^2 of a full one (the projection, the
+            optimiser step and the densifier are per Gaussian and cost the same). Evaluation and outputs are
+            always at full resolution. ``coarse_downscale = 1``: full resolution throughout.
     """
 
     iterations: int = 3000
@@ -120,6 +127,8 @@ class SplatTrainConfig:
     checkpoint_every: int = 500
     sheet_views: int = 4
     fast_projection: bool = True
+    coarse_downscale: int = 1
+    coarse_fraction: float = 0.5
 
     def check(self) -> None:
         """Raise :class:`SplatError` naming the first invalid field."""
@@ -140,6 +149,10 @@ class SplatTrainConfig:
             raise bad("init_opacity", "must be in (0, 1)")
         if self.growth_factor < 1.0:
             raise bad("growth_factor", "must be >= 1")
+        if int(self.coarse_downscale) != self.coarse_downscale or self.coarse_downscale < 1:
+            raise bad("coarse_downscale", "must be an integer >= 1")
+        if not 0.0 <= float(self.coarse_fraction) <= 1.0:
+            raise bad("coarse_fraction", "must be in [0, 1]")
         if self.filter not in ("inria", "mip", "none"):
             raise bad("filter", "must be 'inria', 'mip' or 'none'")
         if len(self.background) != 3:
@@ -152,6 +165,11 @@ class SplatTrainConfig:
     @property
     def refine_stop_step(self) -> int:
         return int(0.8 * self.iterations) if self.refine_stop is None else int(self.refine_stop)
+
+    @property
+    def coarse_stop_step(self) -> int:
+        """Last step trained at the coarse resolution (0: none)."""
+        return int(round(self.coarse_fraction * self.iterations)) if self.coarse_downscale > 1 else 0
 
 
 @dataclass
@@ -266,6 +284,24 @@ class _Data:
         self.masks = [torch.from_numpy(np.ascontiguousarray(v.loss_mask)) for v in views]
         self.poses = [torch.as_tensor(np.asarray(v.T_world_cam, dtype=np.float64)) for v in views]
 
+    def downscaled(self, intr: FisheyeIntrinsics, factor: int) -> tuple["_Data", FisheyeIntrinsics]:
+        """The views at ``1/factor`` resolution (``f x f`` block means; a coarse pixel keeps its mask only if all its
+        full pixels have it) and their intrinsics (``intr.scaled``, exact for the block mean)."""
+        f = int(factor)
+        H, W = intr.height, intr.width
+        if H % f or W % f:
+            raise SplatError(f"SplatTrainConfig.coarse_downscale = {f}: the image size {W}x{H} is not a multiple "
+                             f"of it")
+        out = _Data([])
+        out.names, out.poses = list(self.names), list(self.poses)
+        out.images = [img.reshape(H // f, f, W // f, f, 3).mean(dim=(1, 3)) for img in self.images]
+        out.masks = [m.reshape(H // f, f, W // f, f).all(dim=3).all(dim=1) for m in self.masks]
+        for name, m in zip(out.names, out.masks):
+            if not bool(m.any()):
+                raise SplatError(f"train_splat: view {name!r}: its loss_mask keeps no pixel at 1/{f} resolution "
+                                 f"(SplatTrainConfig.coarse_downscale); use a smaller factor")
+        return out, intr.scaled(W // f, H // f, "exact")
+
 
 def _lrs(cfg: SplatTrainConfig, step: int, scale: float) -> dict[str, float]:
     t = min(max(step, 0), cfg.iterations) / max(cfg.iterations, 1)
@@ -319,7 +355,8 @@ def _load_checkpoint(path: Path, cfg: SplatTrainConfig, names: list[str]) -> dic
                          f"(umi-aug train-splat), or delete it") from exc
     if ck.get("version") != CHECKPOINT_VERSION:
         raise SplatError(f"{path}: checkpoint version {ck.get('version')!r}, expected {CHECKPOINT_VERSION}")
-    old = ck["cfg"]
+    defaults = _cfg_dict(SplatTrainConfig())  # a field added since the checkpoint was written had its default
+    old = {**defaults, **ck["cfg"]}
     new = _cfg_dict(cfg)
     diff = [k for k in new if k not in RESUMABLE_CHANGES and old.get(k) != new[k]]
     if diff:
@@ -373,6 +410,7 @@ def train_splat(
     _check_views(views, intr)
     out = Path(out_dir) if out_dir is not None else None
     data = _Data(views)
+    coarse, coarse_intr = data.downscaled(intr, cfg.coarse_downscale) if cfg.coarse_stop_step > 0 else (data, intr)
     train_idx, held_idx = split_views(len(views), cfg.holdout_every)
     train_eval_idx = train_idx[:: max(1, math.ceil(len(train_idx) / max(cfg.train_eval_views, 1)))]
     scale = scene_scale(np.stack([np.asarray(v.T_world_cam) for v in views]))
@@ -453,10 +491,11 @@ def train_splat(
             g = Gaussians(**params)
             from umi_aug.splat.renderer import render
 
-            r = render(g, data.poses[i], intr, bg, deg_at(it), filter=cfg.filter,
+            d, d_intr = (coarse, coarse_intr) if it <= cfg.coarse_stop_step else (data, intr)
+            r = render(g, d.poses[i], d_intr, bg, deg_at(it), filter=cfg.filter,
                        projection="auto" if cfg.fast_projection else "torch")
             t1 = time.perf_counter()
-            loss, _parts = photometric_loss(r.rgb, data.images[i], data.masks[i], cfg.ssim_weight)
+            loss, _parts = photometric_loss(r.rgb, d.images[i], d.masks[i], cfg.ssim_weight)
             if cfg.opacity_reg > 0:
                 loss = loss + cfg.opacity_reg * torch.sigmoid(params["logit_opacities"]).mean()
             if cfg.scale_reg > 0:
@@ -465,7 +504,7 @@ def train_splat(
             loss.backward()
             t3 = time.perf_counter()
             lrs = _lrs(cfg, it, scale)
-            opt.step(lrs)
+            opt.step(lrs, active={"sh_rest": (deg_at(it) + 1) ** 2 - 1})
             opt.zero_grad()
             inject_noise(params, cfg.noise_lr * lrs["means"], gen)
             t4 = time.perf_counter()

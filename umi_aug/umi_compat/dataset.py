@@ -259,9 +259,10 @@ def _cache_copy(dataset_path: Path, cache_dir: str | os.PathLike) -> Path:
 
 
 def _cached_splat_settings(work_dir: Path) -> dict:
-    """The 3DGS settings (``iterations``, ``max_gaussians``, ``scale_reg``) a prepared session's stage cache was
-    trained with (``<work_dir>/splat/manifest.json``), or {} when there is none. A cache without ``scale_reg`` was
-    trained with the trainer's 0.01 (the key leaves that value out)."""
+    """The 3DGS settings (``iterations``, ``max_gaussians``, ``scale_reg``, ``coarse_downscale``) a prepared session's
+    stage cache was trained with (``<work_dir>/splat/manifest.json``), or {} when there is none. A cache without
+    ``scale_reg`` was trained with the trainer's 0.01, one without ``coarse_downscale`` at full size (the key
+    leaves those values out)."""
     # lazy, start-up: cv2, scipy
     from umi_aug.augment.cache import read_manifest
     from umi_aug.augment.config import TRAINER_SCALE_REG
@@ -271,6 +272,7 @@ def _cached_splat_settings(work_dir: Path) -> dict:
     out: dict = {k: int(splat[k]) for k in ("iterations", "max_gaussians") if isinstance(splat.get(k), int)}
     if out:
         out["scale_reg"] = float(splat.get("scale_reg", TRAINER_SCALE_REG))
+        out["coarse_downscale"] = int(splat.get("coarse_downscale", 1))
     return out
 
 
@@ -411,6 +413,7 @@ class UmiAugDataset(_dataset_base()):
                       splat_iterations=int(iters), splat_max_gaussians=int(budget),
                       # the cached scene's regulariser when the 3DGS settings come from the cache, else the default
                       splat_scale_reg=cached.get("scale_reg") if splat_iterations is None else None,
+                      splat_coarse_downscale=cached.get("coarse_downscale") if splat_iterations is None else None,
                       plan_cache_size=int(plan_cache_size), tcp_offset_m=float(tcp_offset_m),
                       scene_group=scene_group)
         check_aug(a)
