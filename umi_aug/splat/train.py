@@ -91,9 +91,11 @@ class SplatTrainConfig:
             iterations)`` steps train on the views downscaled by the integer ``coarse_downscale`` (the mean of each
             ``f x f`` block; a coarse pixel is in the loss only if all its full pixels are), rendered with the
             matching intrinsics (``FisheyeIntrinsics.scaled``, exact for that block mean); the rest at full
-            resolution. A coarse step costs the rasteriser and the loss ~1/f^2 of a full one (the projection, the
-            optimiser step and the densifier are per Gaussian and cost the same). Evaluation and outputs are
-            always at full resolution. ``coarse_downscale = 1``: full resolution throughout.
+            resolution. At f = 2 a coarse step's rasteriser costs 40-60 % of a full one, not 1/4 (measured on the
+            real episode: per-Gaussian work such as binning does not shrink with the image), the loss ~1/f^2; the
+            projection, the optimiser step and the densifier are per Gaussian and cost the same
+            (docs/real_scale.md section 1b). Evaluation and outputs are always at full resolution.
+            ``coarse_downscale = 1``: full resolution throughout.
     """
 
     iterations: int = 3000
