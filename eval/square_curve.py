@@ -81,14 +81,28 @@ def curve(args: argparse.Namespace, train_over: list[str]) -> None:
         _curve_locked(args, train_over, work)
 
 
-def _check_same_recipe(record: Path, train_over: list[str]) -> None:
-    """A record continues only with the training overrides it was started with (else its rows would mix recipes)."""
+def _check_same_recipe(record: Path, train_over: list[str], max_steps: int, run_dir: Path) -> None:
+    """A record continues only with the training overrides and the schedule length (``--max-steps``) it was started
+    with: other overrides would mix recipes in one record, another ``--max-steps`` would silently re-stretch the
+    learning-rate schedule of the resumed run (a cosine over 18,000 steps resumed at 12,000 as one over 27,000
+    raises the learning rate again)."""
     from umi_aug.errors import EvalError
+    from umi_aug.policy.checkpoint import load_checkpoint
 
     for row in _rows(record):
         if row.get("train_overrides") != train_over:
             raise EvalError(f"{record}: step {row.get('step')} was trained with overrides {row.get('train_overrides')}"
                             f", this run asks for {train_over}; use another --name for another recipe")
+        if row.get("max_steps", max_steps) != max_steps:
+            raise EvalError(f"{record}: step {row.get('step')} was trained on a schedule of --max-steps "
+                            f"{row['max_steps']}, this run asks for {max_steps}; use another --name for another "
+                            f"schedule")
+    latest = run_dir / "checkpoints" / "latest.ckpt"
+    if latest.exists():
+        had = (load_checkpoint(latest)["cfg"].get("training") or {}).get("max_steps")
+        if had is not None and int(had) != max_steps:
+            raise EvalError(f"{latest}: this run's schedule spans training.max_steps={had}, this run asks for "
+                            f"--max-steps {max_steps}; use another --name for another schedule")
 
 
 def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -> None:
@@ -97,9 +111,9 @@ def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -
     from umi_aug.square.source import check_square_demos
 
     record = Path(args.record) / f"{args.name}.jsonl"
-    _check_same_recipe(record, train_over)
-    files = check_square_demos(args.demos)
     run_dir = work / "run"
+    _check_same_recipe(record, train_over, args.max_steps, run_dir)
+    files = check_square_demos(args.demos)
     record.parent.mkdir(parents=True, exist_ok=True)
     done = {r["step"] for r in _rows(record)}
     t0 = time.monotonic()
@@ -118,7 +132,8 @@ def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -
                 raise SystemExit(f"error: {latest} is at step {have}, past the curve point {k} it was not kept at")
             if have < k:
                 loads = _run([sys.executable, "train/train.py", "task=square", f"task.dataset_path={files.zarr}",
-                      f"task.image_size={files.size}", f"hydra.run.dir={run_dir}", f"training.max_steps={args.max_steps}",
+                      f"task.image_size={files.size}", f"hydra.run.dir={run_dir}",
+                      f"training.max_steps={args.max_steps}",
                       f"training.pause_at_step={k}", "training.num_epochs=1000000", "training.val_every=0",
                       "training.sample_every=0", "training.checkpoint_every=0",
                       f"training.checkpoint_every_steps={args.every}", "training.progress_bar=false", *train_over],
@@ -135,7 +150,8 @@ def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -
                "n_demos": files.n, "n": s["n"], "success": s["success_rate"], "success_ci95": s["success_wilson95"],
                **{k: s["subgoals"][g]["rate"] for k, g in (("pregrasp", "pregrasp_reached"), ("lifted", "lifted"),
                                                             ("inserted", "inserted"))},
-               "train_overrides": train_over, "eval_configs": args.eval_configs, "commit": _commit(),
+               "train_overrides": train_over, "max_steps": args.max_steps, "eval_configs": args.eval_configs,
+               "commit": _commit(),
                # mean 1-min load average while this slice trained (2 = the 2 cores busy with training alone)
                "train_load1": round(sum(loads) / len(loads), 2) if loads else None}
         atomic_write_text(record, record.read_text() + json.dumps(row) + "\n" if record.exists()

@@ -263,3 +263,41 @@ def test_median_interval_rejects_nan_and_is_nan_when_empty():
     with pytest.raises(ValueError, match="1 of 3 values are not finite"):
         median_interval([1.0, float("nan"), 2.0])
     assert all(np.isnan(median_interval([])))
+
+
+def test_handover_hands_over_at_the_subgoal_or_the_step_limit(square_env):
+    """Issue #29's "learned approach + scripted grasp": the second policy takes over at the first step the
+    sub-goal holds, or at the step limit. The expert handing over to hold-still at pre-grasp stops there (no
+    lift); hold-still handing over to the expert after 20 steps succeeds as the expert does."""
+    from umi_aug.eval.rollout import Handover, rollout_config
+    from umi_aug.eval.runner import load_eval_configs
+    from umi_aug.eval.stats import summarise
+    from umi_aug.square.controls import ExpertEvalPolicy, HoldStillEvalPolicy
+    from umi_aug.square.eval import SceneProbe
+
+    configs = load_eval_configs(CONFIGS_FILE)
+    probe = SceneProbe(square_env)
+    stop = rollout_config(square_env, probe, ExpertEvalPolicy(), configs["states"][1], 1, 0, horizon=120,
+                          handover=Handover(HoldStillEvalPolicy(), "pregrasp_reached", None))
+    assert stop["handover_reason"] == "subgoal" and stop["handover_step"] == stop["pregrasp_step"]
+    assert not stop["lifted"] and not stop["success"]
+    late = rollout_config(square_env, probe, HoldStillEvalPolicy(), configs["states"][1], 1, 0, horizon=400,
+                          handover=Handover(ExpertEvalPolicy(), "pregrasp_reached", 20))
+    assert late["handover_reason"] == "step_limit" and late["handover_step"] == 20
+    assert late["success"] and late["pregrasp_step"] > 20 and late["handover_info"]["expert_phase"] in (
+        "release", "retreat", "done")
+    s = summarise([stop, late] + [{**late, "config": 2, "handover_reason": None, "handover_step": None}],
+                  subgoals=SQUARE_TASK.subgoals)
+    assert {k: v["count"] for k, v in s["handover"].items()} == {"subgoal": 1, "step_limit": 1, "never": 1}
+    assert s["handover"]["step_limit"]["successes"] == 1 and s["handover"]["subgoal"]["successes"] == 0
+
+
+def test_bad_handover_settings_one_clear_error(tmp_path):
+    from umi_aug.eval.runner import run_eval
+
+    for bad, match in (({"handover": "teleop"}, "handover='teleop'"), ({"handover": "replay"}, "handover='replay'"),
+                       ({"handover": "expert", "handover_subgoal": "flying"}, "handover_subgoal='flying'"),
+                       ({"handover": "expert", "handover_step_limit": 0}, "handover_step_limit=0"),
+                       ({"handover": "expert", "handover_subgoal": None, "handover_step_limit": None}, "nothing")):
+        with pytest.raises(EvalError, match=match):
+            run_eval(_cfg(tmp_path, policy="hold", configs="0:1", horizon=5, **bad), SQUARE_TASK)

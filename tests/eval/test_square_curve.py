@@ -62,3 +62,33 @@ def test_a_second_run_and_another_recipe_are_refused(tmp_path, capsys):
     assert "c.jsonl" in err and "policy=small_regression" in err and "another --name" in err
     assert mod.main([*common, "--", "policy=small"]) == 2  # the same recipe gets past, to the demo check
     assert "no_demos" in capsys.readouterr().err
+
+
+def test_another_schedule_length_is_refused(tmp_path, capsys):
+    """Resuming a curve with another --max-steps would re-stretch its cosine schedule mid-run (the learning rate
+    rises again): refused from the record's rows and from the run's own checkpoint, before anything trains."""
+    from umi_aug.policy.checkpoint import save_checkpoint
+
+    mod = _module()
+    common = ["--name", "c", "--every", "3000", "--out", str(tmp_path / "out"), "--record", str(tmp_path / "rec"),
+              "--demos", str(tmp_path / "no_demos"), "--", "policy=small"]
+    (tmp_path / "rec").mkdir()
+    row = {"name": "c", "step": 3000, "train_overrides": ["policy=small"], "max_steps": 18000}
+    (tmp_path / "rec" / "c.jsonl").write_text(json.dumps(row) + "\n")
+    assert mod.main(["--max-steps", "27000", *common]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "c.jsonl" in err and "18000" in err and "27000" in err
+    assert mod.main(["--max-steps", "18000", *common]) == 2  # the same schedule gets past, to the demo check
+    assert "no_demos" in capsys.readouterr().err
+
+    # an older record without max_steps: the run's checkpoint still knows its schedule
+    older = {k: v for k, v in row.items() if k != "max_steps"}
+    (tmp_path / "rec" / "c.jsonl").write_text(json.dumps(older) + "\n")
+    latest = tmp_path / "out" / "c" / "run" / "checkpoints" / "latest.ckpt"
+    latest.parent.mkdir(parents=True)
+    save_checkpoint(latest, {"cfg": {"training": {"max_steps": 18000}}, "state_dicts": {}, "pickles": {}})
+    assert mod.main(["--max-steps", "27000", *common]) == 2
+    err = capsys.readouterr().err
+    assert "latest.ckpt" in err and "training.max_steps=18000" in err and "27000" in err
+    assert mod.main(["--max-steps", "18000", *common]) == 2
+    assert "no_demos" in capsys.readouterr().err

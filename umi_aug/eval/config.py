@@ -34,6 +34,11 @@ class EvalSimConfig:
         replay_dir: folder of episode shards ``seed_*.npz`` (``umi-aug square-demos`` ``shards/``) for ``replay``.
         random_scale: action magnitude of ``policy=random``.
         progress: show the progress bar and the table.
+        handover: a scripted control of the task (e.g. ``expert``) that takes over from the evaluated policy
+            once ``handover_subgoal`` is first reached or after ``handover_step_limit`` control steps (issue
+            #29's "learned approach + scripted grasp"); ``null`` = the policy drives the whole rollout.
+        handover_subgoal: the task's sub-goal that hands over (the square's ``pregrasp_reached``).
+        handover_step_limit: hand over after this many control steps without the sub-goal (``null`` = never).
     """
 
     policy: str = "checkpoint"
@@ -55,6 +60,9 @@ class EvalSimConfig:
     replay_dir: str | None = None
     random_scale: float = 1.0
     progress: bool = True
+    handover: str | None = None
+    handover_subgoal: str | None = "pregrasp_reached"
+    handover_step_limit: int | None = 200
 
 
 def parse_config_selection(sel: Any, n: int) -> list[int]:

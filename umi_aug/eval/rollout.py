@@ -14,7 +14,8 @@ The environment and what the record says about the task come from the benchmark 
 :mod:`umi_aug.square.eval`). Recorded: ``config``, ``seed``, ``success`` — the environment's task success at ANY
 step, as Diffusion Policy scores it (max reward over the episode) — and ``steps_to_success`` (first such step,
 1-based), then the task's fields (:meth:`~umi_aug.eval.task.TaskProbe.start`), ``steps``, ``final_state_sha1``,
-``policy_info`` (a scripted control's report), ``time_s`` and ``wall_s``.
+``policy_info`` (a scripted control's report), ``time_s`` and ``wall_s``; with a :class:`Handover`, also
+``handover_step``, ``handover_reason`` and ``handover_info``.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from umi_aug.eval.task import SimEnv, TaskProbe, WristCamera
 from umi_aug.policy.contract import PolicyLike, SeedablePolicy, action_chunk
 from umi_aug.sim.raster import PinholeRasterizer, RasterOptions
 
-__all__ = ["LOW_DIM_KEYS", "PolicyDriver", "rollout_config", "VideoSpec"]
+__all__ = ["LOW_DIM_KEYS", "Handover", "PolicyDriver", "rollout_config", "VideoSpec"]
 
 #: the low-dim observation keys a policy gets (UMI's training keys; the width as [1])
 LOW_DIM_KEYS: tuple[str, ...] = ("robot0_eef_pos", "robot0_eef_rot_axis_angle", "robot0_gripper_width")
@@ -140,6 +141,32 @@ class PolicyDriver:
 
 
 @dataclass
+class Handover:
+    """A second policy that finishes a rollout (:func:`rollout_config`'s ``handover``).
+
+    Attributes:
+        policy: the policy that takes over (any :class:`~umi_aug.policy.contract.PolicyLike`, run by its own
+            :class:`PolicyDriver`: a privileged scripted control reads the simulator from then on).
+        subgoal: the task record's boolean sub-goal field whose first ``True`` hands over (the square's
+            ``pregrasp_reached``); None: only the step limit.
+        step_limit: hand over after this many control steps even without the sub-goal; None: never.
+    """
+
+    policy: Any
+    subgoal: str | None = None
+    step_limit: int | None = None
+
+    def due(self, rec: Mapping[str, Any], steps: int) -> str | None:
+        """``"subgoal"`` / ``"step_limit"`` when the rollout's first ``steps`` control steps call for the
+        handover, else None."""
+        if self.subgoal is not None and rec.get(self.subgoal):
+            return "subgoal"
+        if self.step_limit is not None and steps >= self.step_limit:
+            return "step_limit"
+        return None
+
+
+@dataclass
 class VideoSpec:
     """Videos of one rollout: ``wrist`` fisheye and ``external`` pinhole (fixed scene camera) mp4 paths."""
 
@@ -178,7 +205,7 @@ class _Videos:
 def rollout_config(env: SimEnv, probe: TaskProbe, policy: Any, state: np.ndarray, config: int, seed: int,
                    horizon: int = 400, camera: WristCamera | None = None, stop_on_success: bool = True,
                    video: VideoSpec | None = None, camera_factory: Callable[[int], WristCamera] | None = None,
-                   render_every_step: bool = False) -> dict[str, Any]:
+                   render_every_step: bool = False, handover: Handover | None = None) -> dict[str, Any]:
     """Run ``policy`` from the flattened simulator ``state`` for up to ``horizon`` control steps.
 
     The environment is first reset (fixed seed 0: clears the gripper's integrated command and the controller, so a
@@ -201,6 +228,10 @@ def rollout_config(env: SimEnv, probe: TaskProbe, policy: Any, state: np.ndarray
         video: write videos of this rollout (``camera_factory(size)`` gives the wrist camera of the video size).
         render_every_step: render the wrist image at every step, not only the frames the policy will look at
             (reference path of the tests; same outcome, ~4× the rendering).
+        handover: a second policy that takes over from ``policy`` for the rest of the rollout once the task's
+            sub-goal ``handover.subgoal`` is first reached or after ``handover.step_limit`` control steps
+            (e.g. a learned approach finished by the scripted expert); recorded as ``handover_step`` (control
+            steps the first policy drove) and ``handover_reason`` (``"subgoal"``, ``"step_limit"`` or None).
     Returns:
         JSON-able record (see module docstring).
     """
@@ -212,6 +243,8 @@ def rollout_config(env: SimEnv, probe: TaskProbe, policy: Any, state: np.ndarray
     driver.reset(seed)
     rec: dict[str, Any] = {"config": int(config), "seed": int(seed), "success": False, "steps_to_success": None,
                            **probe.start()}
+    if handover is not None:
+        rec |= {"handover_step": None, "handover_reason": None}
     videos = _Videos(env, video, camera_factory, probe.video_camera()) if video is not None else None
     tm["other"] += time.perf_counter() - t_start
     steps = 0
@@ -231,6 +264,12 @@ def rollout_config(env: SimEnv, probe: TaskProbe, policy: Any, state: np.ndarray
             tm["sim"] += t2 - t1
             steps = t + 1
             probe.observe(rec, steps)  # the task's sub-goals and contacts of the state after this step
+            if handover is not None and rec["handover_reason"] is None:
+                why = handover.due(rec, steps)
+                if why:
+                    rec["handover_step"], rec["handover_reason"] = steps, why
+                    driver = PolicyDriver(handover.policy)
+                    driver.reset(seed)
             success = env.is_success()
             if videos is not None:
                 videos.frame(t)
@@ -247,6 +286,8 @@ def rollout_config(env: SimEnv, probe: TaskProbe, policy: Any, state: np.ndarray
     rec["final_state_sha1"] = hashlib.sha1(np.ascontiguousarray(env.get_state()).tobytes()).hexdigest()
     if hasattr(policy, "info"):  # optional report of a scripted control (the expert's final phase)
         rec["policy_info"] = policy.info()
+    if handover is not None and rec["handover_reason"] and hasattr(handover.policy, "info"):
+        rec["handover_info"] = handover.policy.info()
     rec["time_s"] = tm
     rec["wall_s"] = time.perf_counter() - t_start
     return rec

@@ -34,7 +34,7 @@ from umi_aug.eval.config import EvalSimConfig, parse_config_selection
 from umi_aug.eval.pictures import plot_init_success
 from umi_aug.eval.policies import CheckpointEvalPolicy, RolloutSpec
 from umi_aug.eval.results import ResultsLog, check_run_key, file_sha256
-from umi_aug.eval.rollout import VideoSpec, rollout_config
+from umi_aug.eval.rollout import Handover, VideoSpec, rollout_config
 from umi_aug.eval.stats import summarise
 from umi_aug.eval.task import SimTask
 from umi_aug.io_utils import atomic_write_text
@@ -116,6 +116,26 @@ def _build_policy(spec: dict[str, Any]):
     return spec["task"].control(spec["policy"], spec)
 
 
+def _check_handover(cfg: EvalSimConfig, task: SimTask) -> dict[str, Any]:
+    """The handover settings of ``cfg`` as a plain dict (part of the run key).
+
+    Raises:
+        EvalError: a handover kind that is not one of the task's scripted controls, a sub-goal the task does not
+            record, or a step limit below 1.
+    """
+    if cfg.handover not in task.controls or cfg.handover == "replay":  # replay needs the demos' own starts
+        raise EvalError(f"handover={cfg.handover!r}: expected one of the task's scripted controls "
+                        f"{list(task.controls)} (or null)")
+    if cfg.handover_subgoal is not None and cfg.handover_subgoal not in task.subgoals:
+        raise EvalError(f"handover_subgoal={cfg.handover_subgoal!r}: expected one of {list(task.subgoals)}")
+    limit = cfg.handover_step_limit
+    if limit is not None and int(limit) < 1:
+        raise EvalError(f"handover_step_limit={limit!r}: need at least 1 control step (or null)")
+    if cfg.handover_subgoal is None and limit is None:
+        raise EvalError("handover: neither handover_subgoal nor handover_step_limit is set; nothing would hand over")
+    return {"kind": cfg.handover, "subgoal": cfg.handover_subgoal, "step_limit": None if limit is None else int(limit)}
+
+
 def _worker_state(spec: dict[str, Any]) -> dict[str, Any]:
     """This process's env (+ probe, cameras; rebuilt only when the task or its env_meta changes) and policy
     (rebuilt when the policy spec changes)."""
@@ -143,6 +163,9 @@ def _worker_state(spec: dict[str, Any]) -> dict[str, Any]:
         _WORKER.update(env_key=env_key, env=env, probe=task.probe(env), camera=camera, cameras=cams)
     if _WORKER.get("policy_key") != spec["key"]:
         _WORKER["policy"] = _build_policy(spec)
+        h = spec.get("handover")
+        _WORKER["handover"] = (Handover(task.control(h["kind"], spec), h["subgoal"], h["step_limit"])
+                               if h else None)
         _WORKER["policy_key"] = spec["key"]
     return _WORKER
 
@@ -168,7 +191,8 @@ def _run_task(job: tuple[dict[str, Any], int, np.ndarray, int, dict | None]) -> 
     cam = w["camera"](size) if size else None
     vspec = VideoSpec(**video) if video else None
     return rollout_config(w["env"], w["probe"], policy, state, config, seed, horizon=spec["horizon"], camera=cam,
-                          stop_on_success=spec["stop_on_success"], video=vspec, camera_factory=w["camera"])
+                          stop_on_success=spec["stop_on_success"], video=vspec, camera_factory=w["camera"],
+                          handover=w["handover"])
 
 
 def _print_table(summary: dict[str, Any], title: str) -> None:
@@ -186,6 +210,10 @@ def _print_table(summary: dict[str, Any], title: str) -> None:
         t.add_row(k, pct(v))
     for k, v in summary["collisions"].items():
         t.add_row(k, pct(v))
+    for why, h in summary.get("handover", {}).items():
+        lo, hi = h["success_wilson95"]
+        t.add_row(f"handed over: {why}", f"{h['count']}/{summary['n']}, of which {h['successes']} succeeded  "
+                                         f"[{100 * lo:.1f}, {100 * hi:.1f}]")
     s2s = summary["mean_steps_to_success"]
     t.add_row("mean steps to success", "—" if s2s is None else f"{s2s:.1f}")
     t.add_row("rollouts / hour", f"{summary['rollouts_per_hour']:.0f} ({summary['workers']} worker(s))")
@@ -239,6 +267,9 @@ def run_eval(cfg: EvalSimConfig, task: SimTask) -> dict[str, Any]:
                                              n_action_steps=cfg.n_action_steps)  # a bad checkpoint fails here
     if cfg.policy == "random":
         key["random_scale"] = spec["random_scale"] = float(cfg.random_scale)
+    if cfg.handover is not None:
+        spec["handover"] = key["handover"] = _check_handover(cfg, task)
+        spec.setdefault("random_scale", float(cfg.random_scale))
     if cfg.executor not in ("local", "ray"):
         raise EvalError(f"executor={cfg.executor!r}: expected 'local' or 'ray'")
     selected = parse_config_selection(cfg.configs, len(configs["states"]))

@@ -98,4 +98,13 @@ def summarise(records: Iterable[dict[str, Any]], wall_seconds: float | None = No
     if wall_seconds:
         out["wall_s_this_run"] = float(wall_seconds)
     out["failures"] = [r["config"] for r in recs if not r["success"]]
+    if any("handover_reason" in r for r in recs):  # a second policy finished the rollouts (rollout's Handover)
+        out["handover"] = {why or "never": _handover_rate(recs, why) for why in ("subgoal", "step_limit", None)}
     return out
+
+
+def _handover_rate(recs: list[dict[str, Any]], why: str | None) -> dict[str, Any]:
+    """How many rollouts handed over for ``why`` (None: never), and how many of those succeeded."""
+    mine = [r for r in recs if r.get("handover_reason") == why]
+    ok = sum(bool(r["success"]) for r in mine)
+    return {"count": len(mine), "successes": ok, "success_wilson95": list(wilson_interval(ok, len(mine)))}
