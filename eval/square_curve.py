@@ -10,6 +10,10 @@ in-distribution resets (``eval/square_init_configs_reset100.npz``: seeded resets
 used), and one row is appended to ``<record>/<name>.jsonl`` (steps, training minutes, success with its Wilson 95 %
 interval, pre-grasp reached, lifted, inserted). Rerunning the same command continues where it stopped; no new slice
 starts after ``--budget-min`` minutes. ``--report`` writes ``<record>/curves.png`` from every record.
+
+``--dataset X.zarr.zip`` trains on a UMI replay buffer instead of the demo folder's own, e.g. the demos plus their
+augmented episodes (``umi-aug augment square_demos -n 3 --mode freespace --image-size 84 --out X.zarr.zip``); the
+rows then record its original episodes as ``n_demos`` and all of them as ``n_episodes``.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -66,6 +72,28 @@ def _train_minutes(run_dir: Path) -> float:
             total += last
         last = float(r["time"])
     return (total + last) / 60.0
+
+
+def _dataset_files(path: str) -> tuple[Path, int, int, int]:
+    """``(zarr, image size, original episodes, all episodes)`` of a training buffer given by ``--dataset``.
+
+    Raises:
+        AugmentError: not a readable UMI replay buffer with square ``S x S x 3`` frames in ``data/camera0_rgb``.
+    """
+    from umi_aug.data.replay_buffer import ReplayBuffer
+    from umi_aug.errors import AugmentError, UmiAugError
+
+    p = Path(path)
+    try:
+        with ReplayBuffer.open(p) as buf:
+            n = buf.n_episodes
+            shape = tuple(buf["camera0_rgb"].shape[1:])
+            aug_id = np.asarray(buf.meta["aug_id"]) if "aug_id" in buf.meta else np.full(n, -1)
+    except (UmiAugError, KeyError, OSError) as exc:
+        raise AugmentError(f"--dataset {p}: not a UMI replay buffer with data/camera0_rgb ({exc})") from None
+    if len(shape) != 3 or shape[0] != shape[1] or shape[2] != 3:
+        raise AugmentError(f"--dataset {p}: key 'data/camera0_rgb' has frames {shape}; expected S x S x 3")
+    return p.resolve(), int(shape[0]), int((aug_id < 0).sum()), int(n)
 
 
 def _rows(path: Path) -> list[dict]:
@@ -113,7 +141,11 @@ def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -
     record = Path(args.record) / f"{args.name}.jsonl"
     run_dir = work / "run"
     _check_same_recipe(record, train_over, args.max_steps, run_dir)
-    files = check_square_demos(args.demos)
+    if args.dataset:
+        zarr, size, n_demos, n_episodes = _dataset_files(args.dataset)
+    else:
+        files = check_square_demos(args.demos)
+        zarr, size, n_demos, n_episodes = files.zarr, files.size, files.n, files.n
     record.parent.mkdir(parents=True, exist_ok=True)
     done = {r["step"] for r in _rows(record)}
     t0 = time.monotonic()
@@ -131,8 +163,8 @@ def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -
             if have > k:
                 raise SystemExit(f"error: {latest} is at step {have}, past the curve point {k} it was not kept at")
             if have < k:
-                loads = _run([sys.executable, "train/train.py", "task=square", f"task.dataset_path={files.zarr}",
-                      f"task.image_size={files.size}", f"hydra.run.dir={run_dir}",
+                loads = _run([sys.executable, "train/train.py", "task=square", f"task.dataset_path={zarr}",
+                      f"task.image_size={size}", f"hydra.run.dir={run_dir}",
                       f"training.max_steps={args.max_steps}",
                       f"training.pause_at_step={k}", "training.num_epochs=1000000", "training.val_every=0",
                       "training.sample_every=0", "training.checkpoint_every=0",
@@ -147,7 +179,8 @@ def _curve_locked(args: argparse.Namespace, train_over: list[str], work: Path) -
              work / "eval.log")
         s = json.loads((ev / "summary.json").read_text())
         row = {"name": args.name, "step": k, "train_minutes": round(_train_minutes(run_dir), 2),
-               "n_demos": files.n, "n": s["n"], "success": s["success_rate"], "success_ci95": s["success_wilson95"],
+               "n_demos": n_demos, "n_episodes": n_episodes, "dataset": Path(zarr).name, "n": s["n"],
+               "success": s["success_rate"], "success_ci95": s["success_wilson95"],
                **{k: s["subgoals"][g]["rate"] for k, g in (("pregrasp", "pregrasp_reached"), ("lifted", "lifted"),
                                                             ("inserted", "inserted"))},
                "train_overrides": train_over, "max_steps": args.max_steps, "eval_configs": args.eval_configs,
@@ -193,6 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     own = argv[: argv.index("--")] if "--" in argv else argv
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--demos", default="square_demos")
+    ap.add_argument("--dataset", default=None, help="train on this UMI replay buffer (e.g. demos + augmented "
+                    "episodes) instead of the demo folder's own")
     ap.add_argument("--name", default=None)
     ap.add_argument("--every", type=int, default=3000)
     ap.add_argument("--max-steps", type=int, default=30000)

@@ -92,3 +92,24 @@ def test_another_schedule_length_is_refused(tmp_path, capsys):
     assert "latest.ckpt" in err and "training.max_steps=18000" in err and "27000" in err
     assert mod.main(["--max-steps", "18000", *common]) == 2
     assert "no_demos" in capsys.readouterr().err
+
+
+def test_dataset_files_of_a_training_buffer(tmp_path):
+    """--dataset: an export's original episodes (meta/aug_id < 0) and all of its episodes; a bad file, one error."""
+    import numpy as np
+    import pytest
+
+    from umi_aug.data.replay_buffer import ReplayBuffer
+    from umi_aug.errors import AugmentError
+
+    mod = _module()
+    buf = ReplayBuffer.create()
+    for _ in range(5):
+        buf.add_episode({"camera0_rgb": np.zeros((3, 8, 8, 3), np.uint8),
+                         "robot0_eef_pos": np.zeros((3, 3), np.float32)})
+    buf.meta.create_dataset("aug_id", data=np.array([-1, -1, 0, 1, 2]))
+    path = buf.save(tmp_path / "aug.zarr.zip")
+    z, size, n_demos, n_episodes = mod._dataset_files(str(path))
+    assert (z, size, n_demos, n_episodes) == (path.resolve(), 8, 2, 5)
+    with pytest.raises(AugmentError, match="--dataset .*nope"):
+        mod._dataset_files(str(tmp_path / "nope.zarr.zip"))
