@@ -59,6 +59,10 @@ def contact_sheet(
             a.set_title(f"t={k}{tag}", fontsize=7)
         axes[e, 0].set_ylabel(row_names[e] if row_names else f"ep {e}", fontsize=8)
     size = np.asarray(episodes[0][0]).shape[0] if n_ep and len(episodes[0]) else 0
+    height = fig.get_figheight()
+    # the title sits 0.15 in below the top and the grid 0.55 in (room for the frames' own titles), not at the
+    # default fractions of the figure, which leave inches of blank space above a grid of many rows
+    fig.subplots_adjust(top=1.0 - 0.55 / height)
     fig.suptitle(f"policy images ({size}², UMI layout): original demo and new episodes (new frames up to the "
-                 "splice, original frames after it)", fontsize=9)
+                 "splice, original frames after it)", fontsize=9, y=1.0 - 0.15 / height)
     return save_figure(fig, path)
