@@ -45,7 +45,10 @@ def _extreme_gaussians(rng: np.random.Generator, intr: FisheyeIntrinsics, T: np.
             rays_at(math.pi / 2, 0.7), rays_at(0.5 * (math.pi / 2 + th_max), -2.5), rays_at(th_max - 1e-3, 2.9),
             rays_at(th_max + 0.05, 0.1), rays_at(math.pi - 0.01, 1.0), np.array([0.0, 0.0, -1.0])]
     k = len(dirs) * 3
-    p_cam = np.concatenate([np.stack(dirs) * d for d in (0.4, 1.3, 3.0)])
+    # each at its own distance (0.4, 1.3, 3.0 m, +0.1 % per direction): equal ray depths would leave their
+    # compositing order to 1-ulp differences between two projections, and the images would differ where they overlap
+    spread = 1.0 + 1e-3 * np.arange(len(dirs))[:, None]
+    p_cam = np.concatenate([np.stack(dirs) * spread * d for d in (0.4, 1.3, 3.0)])
     p_cam = np.concatenate([p_cam, [[0.0, 0.0, 0.0], [0.0, 0.0, 0.005]]])  # at the centre / inside the near sphere
     k += 2
     means = p_cam @ T[:3, :3].T + T[:3, 3]
