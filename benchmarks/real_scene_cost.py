@@ -8,9 +8,10 @@ pre-contact frame, masked), so error stands against run time for every setting.
 
 Each setting is one change to the defaults of ``umi-aug augment <dataset>`` (every 4th pre-grasp frame
 triangulated, 1,200 3DGS steps with the first half at half size, 30k Gaussians; rows recorded before 2026-11-27
-session 19 name changes to the earlier defaults: every 2nd frame, 600 full-size steps). The last four columns
+session 19 name changes to the earlier defaults: every 2nd frame, 600 full-size steps). The last five columns
 split a 3DGS step (ms per step, averaged over the run): the whole step, the rasteriser and the projection (forward
-+ backward each) and the optimiser.
++ backward each), the optimiser and the loss's forward (its backward is inside the step's autograd); the scene
+column's parts are the triangulation's SIFT extraction, matching and known-pose mapping.
 
 Timings are wall seconds on this machine as it is: run on idle cores (nothing else running) and compare settings
 within one run. Goal (#34): a whole scene in <= 45 s on 2 cores at >= 27 dB held-out.
@@ -55,7 +56,9 @@ SETTINGS: dict[str, dict[str, object]] = {
 #: The 3DGS step's parts (``SplatTrainResult.timings`` keys) the table shows, in ms per training step.
 STEP_PARTS = {"step ms": ("render", "loss", "backward", "step", "densify"),
               "raster ms": ("raster", "raster_backward"), "project ms": ("project", "project_backward"),
-              "optimiser ms": ("step",)}
+              "optimiser ms": ("step",), "loss fwd ms": ("loss",)}
+#: The triangulation's parts (``SfmResult.timings_s``): SIFT extraction, matching, known-pose triangulation.
+SFM_PARTS = ("extract", "match", "map")
 
 
 def configs(overrides: dict[str, object]):
@@ -106,6 +109,7 @@ def build_scene(dataset: Path, work: Path, overrides: dict[str, object]) -> dict
             "stages_s": {k: round(v.seconds, 2) for k, v in st.items()},
             "registered": scene["sfm"]["registered"], "frames": scene["sfm"]["frames"],
             "points3D": scene["sfm"]["points3D"], "cloud": scene["cloud"]["points"],
+            "sfm_s": {k: round(float(scene["sfm"].get("timings_s", {}).get(k, float("nan"))), 2) for k in SFM_PARTS},
             "psnr": splat["heldout_psnr"], "ssim": splat["heldout_ssim"], "gaussians": splat["gaussians"],
             "splat_train_s": splat["train_seconds"], "splat_step_profile": profile}
 
@@ -142,17 +146,18 @@ def main() -> int:
             console.print(f"{name}: {r['total_s']:.1f} s, {r['psnr']:.2f} dB")
         rows.append({"setting": name, "overrides": SETTINGS[name], **r})
     t = Table(title="one real episode's scene from an empty cache (seconds, held-out PSNR/SSIM every 8th frame)")
-    for c in ("setting", "total s", "scene s", "sdf s", "contact s", "splat s", "mask s", "SfM frames", "points",
-              "contact/splice", "PSNR dB", "SSIM", "Gaussians", *STEP_PARTS):
+    for c in ("setting", "total s", "scene s", "(SIFT / match / map s)", "sdf s", "contact s", "splat s", "mask s",
+              "SfM frames", "points", "contact/splice", "PSNR dB", "SSIM", "Gaussians", *STEP_PARTS):
         t.add_column(c, justify="right")
     for r in rows:
         if "failed" in r:
-            t.add_row(r["setting"], f"{r['total_s']:.1f}", *(["-"] * 8), "failed: " + r["failed"][-60:], "-", "-",
+            t.add_row(r["setting"], f"{r['total_s']:.1f}", *(["-"] * 9), "failed: " + r["failed"][-60:], "-", "-",
                       *(["-"] * len(STEP_PARTS)))
             continue
         s = r["stages_s"]
-        t.add_row(r["setting"], f"{r['total_s']:.1f}", *(f"{s.get(k, 0.0):.1f}" for k in
-                                                        ("scene", "sdf", "contact", "splat", "gripper_mask")),
+        sfm = " / ".join(f"{r['sfm_s'][k]:.1f}" for k in SFM_PARTS)
+        t.add_row(r["setting"], f"{r['total_s']:.1f}", f"{s.get('scene', 0.0):.1f}", sfm,
+                  *(f"{s.get(k, 0.0):.1f}" for k in ("sdf", "contact", "splat", "gripper_mask")),
                   f"{r['registered']}/{r['frames']}", str(r["points3D"]), f"{r['contact']}/{r['splice']}",
                   f"{r['psnr']:.2f}", f"{r['ssim']:.3f}",
                   str(r["gaussians"]), *(f"{r['splat_step_profile'][k]:.1f}" for k in STEP_PARTS))

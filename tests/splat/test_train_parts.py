@@ -24,6 +24,7 @@ from umi_aug.splat.losses import (
     masked_ssim,
     photometric_loss,
     ssim_map,
+    ssim_target_stats,
 )
 from umi_aug.splat.optim import GaussianAdam
 from umi_aug.splat.train import split_views
@@ -76,6 +77,58 @@ def test_masked_pixels_get_exactly_zero_gradient(rng):
     ssim_ref = _ssim_map_reference(torch.where(mask[..., None], pred.detach(), target).numpy(), target.numpy())
     assert abs(parts["ssim"] - ssim_ref[mask.numpy()].mean()) < 1e-10
     assert abs(float(loss.detach()) - (0.8 * parts["l1"] + 0.2 * (1 - parts["ssim"]))) < 1e-12
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cached_target_stats_give_the_same_loss_and_gradient(rng, dtype):
+    """A trainer keeps each view's ssim_target_stats: the loss, its parts and the prediction's gradient equal the
+    ones computed from scratch (and the SSIM map the direct float64 reference), with and without a mask."""
+    H, W = int(rng.integers(9, 31)), int(rng.integers(9, 37))
+    target = torch.as_tensor(rng.uniform(size=(H, W, 3)), dtype=dtype)
+    stats = ssim_target_stats(target)
+    assert stats.shape == (1, 6, H, W) and not stats.requires_grad
+    for mask in (None, torch.as_tensor(rng.uniform(size=(H, W)) > 0.3)):
+        pred = torch.as_tensor(rng.uniform(size=(H, W, 3)), dtype=dtype)
+        grads, losses, parts = [], [], []
+        for ts in (None, stats):
+            p = pred.clone().requires_grad_(True)
+            loss, part = photometric_loss(p, target, mask, 0.2, target_stats=ts)
+            loss.backward()
+            grads.append(p.grad)
+            losses.append(float(loss.detach()))
+            parts.append(part)
+        tol = 1e-12 if dtype == torch.float64 else 2e-6
+        assert np.isfinite(losses).all() and torch.isfinite(grads[1]).all()
+        assert abs(losses[0] - losses[1]) <= tol and abs(parts[0]["ssim"] - parts[1]["ssim"]) <= tol
+        torch.testing.assert_close(grads[1], grads[0], rtol=0, atol=tol)
+    ref = _ssim_map_reference(pred.double().numpy(), target.double().numpy())
+    np.testing.assert_allclose(ssim_map(pred, target, stats).double().numpy(), ref, rtol=0,
+                               atol=1e-10 if dtype == torch.float64 else 5e-4)
+    # stats of another image size or dtype are refused with one clear error
+    with pytest.raises(SplatError, match="target_stats"):
+        photometric_loss(pred, target, None, 0.2, target_stats=stats[:, :, :-1])
+    with pytest.raises(SplatError, match="target_stats"):
+        ssim_map(pred, target, stats.to(torch.float16))
+    with pytest.raises(SplatError, match="ssim_target_stats"):
+        ssim_target_stats(target[..., :2])
+
+
+def test_trainer_keeps_view_stats_within_its_memory_budget(rng, monkeypatch):
+    """train_splat's views keep their SSIM target statistics up to SSIM_STATS_CACHE_BYTES and compute the rest
+    each time; kept or not, they equal ssim_target_stats of the view."""
+    import umi_aug.splat.train as train_mod
+
+    views = [train_mod.TrainView(f"v{i}", rng.integers(0, 256, (12, 16, 3), dtype=np.uint8), np.eye(4),
+                                 np.ones((12, 16), bool)) for i in range(4)]
+    one_view = 6 * 12 * 16 * 4  # bytes of one view's float32 statistics
+    monkeypatch.setattr(train_mod, "SSIM_STATS_CACHE_BYTES", 2 * one_view)
+    data = train_mod._Data(views)
+    for _ in range(2):
+        for i in range(4):
+            st = data.ssim_stats(i)
+            torch.testing.assert_close(st, ssim_target_stats(data.images[i]), rtol=0, atol=0)
+    assert sorted(data._ssim_stats) == [0, 1]
+    assert data.ssim_stats(0) is data.ssim_stats(0) and data.ssim_stats(3) is not data.ssim_stats(3)
 
 
 def test_masked_metrics_and_errors(rng):

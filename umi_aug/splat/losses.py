@@ -6,8 +6,11 @@ windows are taken, so masked pixels get exactly zero gradient and windows stradd
 true pixels against the target; L1 and the SSIM map are then averaged over the masked-in pixels only.
 
 SSIM: 11x11 Gaussian window (sigma 1.5), ``C1 = 0.01^2``, ``C2 = 0.03^2`` (data range 1), zero padding at the
-image border (INRIA ``utils/loss_utils.py``), separable convolution. :func:`umi_aug.splat._torch_impl._ssim_map_reference`
-is the direct float64 formula (explicit windows) the fast version is tested against.
+image border (INRIA ``utils/loss_utils.py``), separable convolution.
+:func:`umi_aug.splat._torch_impl._ssim_map_reference` is the direct float64 formula (explicit windows) the fast
+version is tested against. A trainer that sees the same target many times passes its window statistics
+(:func:`ssim_target_stats`, computed once per view), so that each step blurs only the three maps that depend on the
+prediction (9 of 15 channels, forward and backward).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import torch.nn.functional as F
 from umi_aug.errors import SplatError
 
 __all__ = [
-    "SSIM_WINDOW", "SSIM_SIGMA", "gaussian_window_1d", "ssim_map", "masked_ssim",
+    "SSIM_WINDOW", "SSIM_SIGMA", "gaussian_window_1d", "ssim_map", "ssim_target_stats", "masked_ssim",
     "masked_l1", "masked_psnr", "photometric_loss",
 ]
 
@@ -58,14 +61,42 @@ def _blur(x: Tensor, w: Tensor) -> Tensor:
     return F.conv2d(x, w.view(1, 1, k, 1).expand(c, 1, k, 1), padding=(k // 2, 0), groups=c)
 
 
-def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
-    """Per-pixel SSIM ``[H, W, 3]`` of two ``[H, W, 3]`` images in [0, 1] (differentiable, separable conv)."""
+def ssim_target_stats(target: Tensor) -> Tensor:
+    """Window statistics of a target image ``[H, W, 3]``: ``[1, 6, H, W]`` = the blurred ``y`` and ``y^2`` (3
+    channels each), what :func:`ssim_map` takes as ``target_stats``. Not differentiable (the target is data)."""
+    if target.ndim != 3 or target.shape[-1] != 3:
+        raise SplatError(f"ssim_target_stats: target must be [H, W, 3], got {list(target.shape)}")
+    with torch.no_grad():
+        return _target_stats(target)
+
+
+def _target_stats(target: Tensor) -> Tensor:
+    y = target.permute(2, 0, 1)[None]
+    return _blur(torch.cat([y, y * y], dim=1), gaussian_window_1d(dtype=target.dtype))
+
+
+def _check_target_stats(target_stats: Tensor, target: Tensor) -> None:
+    H, W = target.shape[:2]
+    if tuple(target_stats.shape) != (1, 6, H, W) or target_stats.dtype != target.dtype:
+        raise SplatError(f"target_stats must be ssim_target_stats(target): [1, 6, {H}, {W}] {target.dtype}, got "
+                         f"{list(target_stats.shape)} {target_stats.dtype}")
+
+
+def ssim_map(pred: Tensor, target: Tensor, target_stats: Tensor | None = None) -> Tensor:
+    """Per-pixel SSIM ``[H, W, 3]`` of two ``[H, W, 3]`` images in [0, 1] (differentiable, separable conv).
+
+    ``target_stats``: :func:`ssim_target_stats` of ``target`` when already known (the same values; saves blurring
+    the target's maps again)."""
     _check_pair(pred, target, None)
     w = gaussian_window_1d(dtype=pred.dtype)
     x = pred.permute(2, 0, 1)[None]  # [1, 3, H, W]
     y = target.permute(2, 0, 1)[None]
-    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), w)  # [1, 15, H, W]
-    mu_x, mu_y, e_xx, e_yy, e_xy = stats.split(3, dim=1)
+    if target_stats is None:
+        target_stats = _target_stats(target)  # differentiable, for a target that requires grad
+    else:
+        _check_target_stats(target_stats, target)
+    mu_x, e_xx, e_xy = _blur(torch.cat([x, x * x, x * y], dim=1), w).split(3, dim=1)  # [1, 3, H, W] each
+    mu_y, e_yy = target_stats.split(3, dim=1)
     sxx = e_xx - mu_x * mu_x
     syy = e_yy - mu_y * mu_y
     sxy = e_xy - mu_x * mu_y
@@ -88,10 +119,12 @@ def _masked_mean(x: Tensor, mask: Tensor | None) -> Tensor:
     return (x * mask[..., None].to(x.dtype)).sum() / (3.0 * n.to(x.dtype))
 
 
-def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
-    """Mean SSIM over the masked-in pixels (``mask [H, W]`` bool; prediction composited with the target outside)."""
+def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor | None = None,
+                target_stats: Tensor | None = None) -> Tensor:
+    """Mean SSIM over the masked-in pixels (``mask [H, W]`` bool; prediction composited with the target outside;
+    ``target_stats`` as in :func:`ssim_map`)."""
     _check_pair(pred, target, mask)
-    return _masked_mean(ssim_map(_composite(pred, target, mask), target), mask)
+    return _masked_mean(ssim_map(_composite(pred, target, mask), target, target_stats), mask)
 
 
 def masked_l1(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -112,7 +145,7 @@ def masked_psnr(pred: Tensor | np.ndarray, target: Tensor | np.ndarray,
 
 
 def photometric_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None,
-                     ssim_weight: float = 0.2) -> tuple[Tensor, dict[str, float]]:
+                     ssim_weight: float = 0.2, target_stats: Tensor | None = None) -> tuple[Tensor, dict[str, float]]:
     """``(1 - w) L1 + w (1 - SSIM)`` on the masked-in pixels (INRIA 3DGS with ``w = 0.2``).
 
     Args:
@@ -120,6 +153,7 @@ def photometric_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None,
         target: Tensor,  # [H, W, 3] ground truth in [0, 1]
         mask: Tensor | None,  # [H, W] bool, True = pixel used
         ssim_weight: ``w`` in [0, 1].
+        target_stats: Tensor | None,  # [1, 6, H, W] ssim_target_stats(target), when the caller keeps it per view
     Returns:
         The scalar loss and ``{"l1": ..., "ssim": ...}`` (floats, for logging).
     """
@@ -129,7 +163,7 @@ def photometric_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None,
     comp = _composite(pred, target, mask)
     l1 = _masked_mean((comp - target).abs(), mask)
     if ssim_weight > 0:
-        ssim = _masked_mean(ssim_map(comp, target), mask)
+        ssim = _masked_mean(ssim_map(comp, target, target_stats), mask)
         loss = (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim)
     else:
         ssim = torch.zeros((), dtype=pred.dtype)

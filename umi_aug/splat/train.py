@@ -37,7 +37,7 @@ from umi_aug.errors import SplatError
 from umi_aug.io_utils import atomic_path
 from umi_aug.splat.densify import grow, inject_noise, relocate_dead
 from umi_aug.splat.gaussians import Gaussians
-from umi_aug.splat.losses import masked_psnr, masked_ssim, photometric_loss
+from umi_aug.splat.losses import masked_psnr, masked_ssim, photometric_loss, ssim_target_stats
 from umi_aug.splat.optim import GaussianAdam
 from umi_aug.splat.ply import write_ply
 from umi_aug.splat.train_report import config_dict, write_outputs
@@ -277,6 +277,10 @@ def _check_views(views: Sequence[TrainView], intr: FisheyeIntrinsics) -> None:
             raise SplatError(f"train_splat: view {v.name!r}: T_world_cam must be a finite [4, 4] pose")
 
 
+#: Memory for the training views' SSIM window statistics kept between steps (bytes; 256 MiB = ~220 views at 224^2).
+SSIM_STATS_CACHE_BYTES = 256 * 2**20
+
+
 class _Data:
     """Views as tensors (images float32 [H, W, 3] in [0, 1], masks bool [H, W])."""
 
@@ -285,6 +289,18 @@ class _Data:
         self.images = [torch.from_numpy(np.asarray(v.image, dtype=np.float32) / 255.0) for v in views]
         self.masks = [torch.from_numpy(np.ascontiguousarray(v.loss_mask)) for v in views]
         self.poses = [torch.as_tensor(np.asarray(v.T_world_cam, dtype=np.float64)) for v in views]
+        self._ssim_stats: dict[int, torch.Tensor] = {}
+
+    def ssim_stats(self, i: int) -> torch.Tensor:
+        """:func:`ssim_target_stats` of view ``i``, computed on first use and kept while the kept ones stay within
+        ``SSIM_STATS_CACHE_BYTES`` (24 bytes per pixel in float32; beyond it they are computed each time)."""
+        st = self._ssim_stats.get(i)
+        if st is None:
+            st = ssim_target_stats(self.images[i])
+            kept = sum(t.numel() * t.element_size() for t in self._ssim_stats.values())
+            if kept + st.numel() * st.element_size() <= SSIM_STATS_CACHE_BYTES:
+                self._ssim_stats[i] = st
+        return st
 
     def downscaled(self, intr: FisheyeIntrinsics, factor: int) -> tuple["_Data", FisheyeIntrinsics]:
         """The views at ``1/factor`` resolution (``f x f`` block means; a coarse pixel keeps its mask only if all its
@@ -497,7 +513,8 @@ def train_splat(
             r = render(g, d.poses[i], d_intr, bg, deg_at(it), filter=cfg.filter,
                        projection="auto" if cfg.fast_projection else "torch")
             t1 = time.perf_counter()
-            loss, _parts = photometric_loss(r.rgb, d.images[i], d.masks[i], cfg.ssim_weight)
+            loss, _parts = photometric_loss(r.rgb, d.images[i], d.masks[i], cfg.ssim_weight,
+                                            target_stats=d.ssim_stats(i) if cfg.ssim_weight > 0 else None)
             if cfg.opacity_reg > 0:
                 loss = loss + cfg.opacity_reg * torch.sigmoid(params["logit_opacities"]).mean()
             if cfg.scale_reg > 0:
