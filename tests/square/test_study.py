@@ -30,6 +30,9 @@ def test_recipes_load_and_bad_keys_are_named(tmp_path):
     assert st.expected_rollouts(cpu) == 200  # the issue's >= 200 configurations
     paper = st.load_recipe(ROOT / "configs" / "square_study" / "paper.yaml")
     assert paper.sizes == [30, 50, 100, 150, 200] and st.expected_rollouts(paper) == 1000
+    reg = st.load_recipe(ROOT / "configs" / "square_study" / "cpu_regression.yaml")  # issue #29 part 4
+    assert st.expected_rollouts(reg) == 500 and st.expected_rollouts(reg, handover=True) == 100
+    assert reg.eval_handover and not cpu.eval_handover and not paper.eval_handover
     with pytest.raises(st.StudyError, match="no_such_key"):
         _cfg(tmp_path, "no_such_key=3")
     with pytest.raises(st.StudyError, match="'magic'"):
@@ -57,7 +60,7 @@ def test_the_study_trains_on_every_demo(tmp_path):
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
     ds = make_dataset(tmp_path / "d.zarr.zip", np.random.default_rng(0), n_episodes=10, length=30, size=84)
     ds = with_commanded_targets(ds, tmp_path / "a.zarr.zip", np.random.default_rng(1))[0]  # task=square labels
-    for recipe in ("cpu", "paper"):
+    for recipe in ("cpu", "paper", "cpu_regression"):
         cfg = st.load_recipe(ROOT / "configs" / "square_study" / f"{recipe}.yaml")
         cmd = st.train_command(cfg, {"name": "none_n10", "variant": "none", "n": 10})
         over = [a for a in cmd[2:] if not a.startswith(("hydra.", "task.dataset_path="))]
@@ -113,7 +116,7 @@ def _fake_steps(monkeypatch, calls: list[str], fail: str | None = None, unfinish
             ck.write_text("x")
         else:
             out = Path(arg["out_dir"])
-            calls.append(f"eval/{out.name}")
+            calls.append(("eval_handover/" if arg.get("handover") == "expert" else "eval/") + out.name)
             out.mkdir(parents=True, exist_ok=True)
             n = 5 if out.name == unfinished_eval else 200
             (out / "results.jsonl").write_text("".join(json.dumps({"config": i, "success": i % 2 == 0}) + "\n"
@@ -316,3 +319,79 @@ def test_paired_comparison_with_none_on_shared_configurations(tmp_path, rng):
     write_report(cfg, st.study_cells(cfg), {"steps": {}})
     md = Path(cfg.report_md).read_text()
     assert f"| ours | 10 | 35 | {np.median(d):+.0f} [" in md and f"| {p['closer']} / 35 | {np.median(d):+.1f} [" in md and "| 1 vs 0 |" in md
+
+
+def test_handover_evaluation_is_a_step_of_its_own_and_the_report_pairs_ours_with_every_variant(tmp_path, monkeypatch,
+                                                                                              rng):
+    """Part 4's metric (c) — learned approach + scripted grasp — runs after a cell's own evaluation on its own
+    configurations and is recorded apart; a recipe without it is unchanged; `ours` is paired with every variant."""
+    from umi_aug.square.report import paired_outcomes, write_report
+
+    over = ("variants=[none,ours,spartn]", "sizes=[25]", "sweep_thetas=[]", f"record_dir={tmp_path / 'record'}",
+            f"demos_dir={tmp_path / 'demos'}")
+    cfg = _cfg(tmp_path, *over, "eval_handover=true", "handover_configs=0:1000:10")
+    assert st.expected_rollouts(cfg) == 200 and st.expected_rollouts(cfg, handover=True) == 100
+    cmd = st.eval_command(cfg, {"name": "none_n25"}, handover=True)
+    assert "handover=expert" in cmd and "configs=0:1000:10" in cmd
+    assert f"out_dir={cfg.out / 'evals_handover' / 'none_n25'}" in cmd
+    assert "handover=expert" not in st.eval_command(cfg, {"name": "none_n25"})
+    calls: list[str] = []
+    _fake_steps(monkeypatch, calls, unfinished_eval="ours_n25")  # the fake writes 200 rollouts (5 for ours_n25)
+    st.run_study(cfg, ("data", "train", "eval"))
+    assert calls == ["demos", "export", "variant/none_n25", "train/none_n25", "eval/none_n25",
+                     "eval_handover/none_n25", "variant/ours_n25", "train/ours_n25", "eval/ours_n25",
+                     "eval_handover/ours_n25", "variant/spartn_n25", "train/spartn_n25", "eval/spartn_n25",
+                     "eval_handover/spartn_n25"]
+    rec = tmp_path / "record" / "evals_handover"
+    assert sorted(p.name for p in rec.iterdir()) == ["none_n25", "spartn_n25"]  # ours_n25's are unfinished
+    calls.clear()
+    st.run_study(cfg, ("data", "train", "eval"))
+    assert calls == ["eval/ours_n25", "eval_handover/ours_n25"]
+    # a finished cell whose handover evaluation is missing is not finished
+    import shutil
+
+    shutil.rmtree(rec / "none_n25")
+    assert not st.cell_finished(cfg, {"name": "none_n25"})
+    calls.clear()
+    _fake_steps(monkeypatch, calls)
+    st.run_study(cfg, ("data", "train", "eval"))
+    assert calls == ["eval_handover/none_n25", "eval/ours_n25", "eval_handover/ours_n25"]
+    # without eval_handover (the default, every earlier recipe) nothing changes
+    assert not _cfg(tmp_path).eval_handover
+    assert all(not s[0].startswith("eval_handover") for s in st._cell_steps(_cfg(tmp_path), {
+        "name": "none_n10", "variant": "none", "n": 10, "theta": None}, ("eval",)))
+    # the report: paired outcomes of ours against the other variants, and (c) in its own column
+    n = 60
+    ours_ok = rng.random(n) < 0.5
+    other_ok = np.where(rng.random(n) < 0.3, ~ours_ok, ours_ok)
+    for name, ok in (("ours_n25", ours_ok), ("none_n25", other_ok), ("spartn_n25", ours_ok)):
+        for handover in (False, True):
+            d = st.record_eval_dir(cfg, {"name": name}, handover)
+            shutil.rmtree(d, ignore_errors=True)
+            _write_results(d, [{"config": i, "success": bool(ok[i]) or handover, "pregrasp_reached": bool(ok[i])}
+                               for i in range(n)])
+    p = paired_outcomes(st.record_eval_dir(cfg, {"name": "ours_n25"}), st.record_eval_dir(cfg, {"name": "none_n25"}))
+    only_o, only_n = int((ours_ok & ~other_ok).sum()), int((~ours_ok & other_ok).sum())
+    assert (p["n"], p["cell"], p["other"]) == (n, int(ours_ok.sum()), int(other_ok.sum()))
+    assert (p["only_cell"], p["only_other"]) == (only_o, only_n)
+    assert p["diff"] == pytest.approx((only_o - only_n) / n) and p["diff_ci95"][0] <= p["diff"] <= p["diff_ci95"][1]
+    from umi_aug.eval.stats import mcnemar_exact_p
+
+    assert p["mcnemar_p"] == mcnemar_exact_p(only_o, only_n)
+    same = paired_outcomes(st.record_eval_dir(cfg, {"name": "ours_n25"}),
+                           st.record_eval_dir(cfg, {"name": "spartn_n25"}))
+    assert same["mcnemar_p"] == 1.0 and same["diff_ci95"] == [0.0, 0.0]
+    assert paired_outcomes(st.record_eval_dir(cfg, {"name": "ours_n25"}), tmp_path / "nothing") is None
+    rep = write_report(cfg, st.study_cells(cfg), st.load_state(cfg))
+    md = Path(cfg.report_md).read_text()
+    assert "(c) learned approach + scripted grasp |" in md and rep["handover_metrics"]["none_n25"]["n"] == n
+    assert "| none | 25 | 60 | " in md and md.count("| 100.0 [") == 3  # (c): every handover rollout succeeded
+    for label in ("(a) success", "(b) pre-grasp reached", "(c) learned approach + scripted grasp"):
+        assert f"| none | 25 | {label} | {n} |" in md and f"| spartn | 25 | {label} | {n} |" in md
+    row = next(line for line in md.splitlines() if line.startswith("| none | 25 | (a) success |"))
+    assert f"| {only_o} / {only_n} |" in row and f"{100 * p['diff']:+.1f} [" in row
+    assert "handover=expert" in md  # its command
+    no_c = _cfg(tmp_path, *over, f"report_md={tmp_path / 'r2.md'}")
+    write_report(no_c, st.study_cells(no_c), st.load_state(no_c))
+    md2 = Path(no_c.report_md).read_text()
+    assert "(c)" not in md2 and "| none | 25 | (a) success |" in md2  # (a) and (b) pair without the handover

@@ -7,7 +7,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-__all__ = ["wilson_interval", "median_interval", "summarise"]
+__all__ = ["wilson_interval", "median_interval", "mcnemar_exact_p", "paired_bootstrap_interval", "summarise"]
 
 #: two-sided 95 % normal quantile
 Z95: float = 1.959963984540054
@@ -52,6 +52,59 @@ def median_interval(values: Iterable[float], z: float = Z95) -> tuple[float, flo
     j = min(max(int(math.floor(n / 2.0 - half)), 1), n)
     k = min(max(int(math.ceil(1.0 + n / 2.0 + half)), 1), n)
     return float(x[j - 1]), float(x[k - 1])
+
+
+def mcnemar_exact_p(only_a: int, only_b: int) -> float:
+    """Two-sided exact McNemar test of two policies evaluated on the same configurations: the p-value of the
+    discordant counts (``only_a`` configurations where only policy A succeeded, ``only_b`` where only B did) under
+    the null hypothesis that both succeed equally often, i.e. ``min(1, 2 · P[X <= min(only_a, only_b)])`` for
+    ``X ~ Binomial(only_a + only_b, 1/2)``. Concordant pairs carry no information and are not arguments. 1.0 when
+    there is no discordant pair."""
+    a, b = int(only_a), int(only_b)
+    if a < 0 or b < 0:
+        raise ValueError(f"mcnemar_exact_p: discordant counts must be >= 0, got only_a={only_a}, only_b={only_b}")
+    n = a + b
+    if n == 0:
+        return 1.0
+    k = min(a, b)
+    # log-space binomial terms: exact enough for any n an evaluation has (lgamma), never overflows
+    logs = [math.lgamma(n + 1) - math.lgamma(i + 1) - math.lgamma(n - i + 1) - n * math.log(2.0)
+            for i in range(k + 1)]
+    top = max(logs)
+    tail = math.exp(top) * sum(math.exp(v - top) for v in logs)
+    return min(1.0, 2.0 * tail)
+
+
+def paired_bootstrap_interval(a: Sequence[bool] | np.ndarray, b: Sequence[bool] | np.ndarray,
+                              n_boot: int = 10000, seed: int = 0, level: float = 0.95) -> tuple[float, float]:
+    """Percentile bootstrap interval of the difference of two success rates measured on the same configurations
+    (``mean(a) - mean(b)``, as fractions): configurations are resampled with replacement, each keeping its pair of
+    outcomes, so the interval accounts for what the configurations share. Deterministic for a ``seed``.
+
+    Args:
+        a, b: per-configuration outcomes of policy A and B, same length and order (the same configurations).
+        n_boot: bootstrap resamples.
+        level: coverage of the interval.
+    Returns:
+        (lo, hi): fractions in [-1, 1]; ``(nan, nan)`` when there is no configuration.
+    """
+    x = np.asarray(a, dtype=np.float64).reshape(-1)
+    y = np.asarray(b, dtype=np.float64).reshape(-1)
+    if x.shape != y.shape:
+        raise ValueError(f"paired_bootstrap_interval: a and b must pair up, got {x.size} and {y.size} outcomes")
+    if not 0.0 < level < 1.0 or int(n_boot) < 1:
+        raise ValueError(f"paired_bootstrap_interval: need 0 < level < 1 and n_boot >= 1, got {level}, {n_boot}")
+    if x.size == 0:
+        return float("nan"), float("nan")
+    d = x - y
+    rng = np.random.default_rng(seed)
+    means = np.empty(int(n_boot))
+    chunk = max(1, 2_000_000 // d.size)  # bounded memory: at most ~2M resampled indices at a time
+    for s in range(0, int(n_boot), chunk):
+        m = min(chunk, int(n_boot) - s)
+        means[s:s + m] = d[rng.integers(0, d.size, size=(m, d.size))].mean(axis=1)
+    q = (1.0 - level) / 2.0
+    return float(np.quantile(means, q)), float(np.quantile(means, 1.0 - q))
 
 
 def _rate(records: list[dict[str, Any]], key: str) -> dict[str, Any]:

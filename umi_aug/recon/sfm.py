@@ -72,11 +72,13 @@ class SfmConfig:
         pose_pair_max_dist_m / pose_pair_max_angle_deg: extra pairs from known poses (``known_poses`` or when
             poses are given; 0 = off).
         min_registered_fraction / min_registered: refuse reconstructions registering fewer frames.
-        num_threads: threads for feature matching, and for ``full`` mode's mapping. Extraction and the
-            known-pose triangulation run on one thread, so a known-pose cloud is the same bytes run after run
-            (with 2 threads the keypoints' order and the points' last bits changed; the triangulation took
-            the same time on 1 thread: 52 vs 50 s on the real episode). ``full`` mode stays multi-threaded
-            and is not bit-reproducible.
+        num_threads: threads for ``full`` mode's feature matching and mapping. Extraction, and in
+            ``known_poses`` mode also matching and triangulation, run on one thread, so a known-pose cloud is
+            the same bytes run after run (with 2 threads the keypoints' order and the points' last bits changed;
+            the triangulation took the same time on 1 thread: 52 vs 50 s on the real episode; with 2 matching
+            threads on a machine loaded by other work the two-view verification kept other inliers and the
+            cloud another point count: 459 vs 460 points, tests/recon/test_sfm_determinism.py beside 3 busy
+            processes). ``full`` mode stays multi-threaded and is not bit-reproducible.
         seed: COLMAP random seed (reproducible RANSAC).
     """
 
@@ -270,7 +272,9 @@ def _extract_and_match(pc, work: Path, names: list[str], intr: FisheyeIntrinsics
     pair_file = work / "pairs.txt"
     pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
     mopt = pc.FeatureMatchingOptions()
-    mopt.num_threads = cfg.num_threads
+    # known poses: one matching thread too, see SfmConfig.num_threads (which thread verifies which pair changed
+    # the two-view inliers under load)
+    mopt.num_threads = cfg.num_threads if cfg.mode == "full" else 1
     popt = pc.ImportedPairingOptions()
     popt.match_list_path = str(pair_file)
     vopt = pc.TwoViewGeometryOptions()

@@ -16,12 +16,13 @@ from typing import Any
 import numpy as np
 
 from umi_aug.eval.results import ResultsLog
-from umi_aug.eval.stats import median_interval, wilson_interval
+from umi_aug.eval.stats import mcnemar_exact_p, median_interval, paired_bootstrap_interval, wilson_interval
 from umi_aug.io_utils import atomic_path, atomic_write_text
-from umi_aug.square.study import (eval_command, export_path, load_state, record_eval_dir, record_export_summary,
-                                  study_cells, train_command, variant_path)
+from umi_aug.square.study import (eval_command, export_path, handover_configs, load_state, record_eval_dir,
+                                  record_export_summary, study_cells, train_command, variant_path)
 
-__all__ = ["cell_metrics", "paired_vs", "fidelity", "report_study", "write_report", "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
+__all__ = ["cell_metrics", "paired_vs", "paired_outcomes", "fidelity", "report_study", "write_report",
+           "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
 
 METRICS: tuple[str, ...] = ("success", "pregrasp_reached", "lifted", "inserted", "collision_table", "collision_peg")
 
@@ -75,6 +76,54 @@ def paired_vs(eval_dir: Path, baseline_dir: Path) -> dict[str, Any] | None:
             "baseline_successes": int(sum(bool(b[c].get("success")) for c in both))}
 
 
+def paired_outcomes(eval_dir: Path, other_dir: Path, key: str = "success", n_boot: int = 10000,
+                    seed: int = 0) -> dict[str, Any] | None:
+    """A cell against another on the configurations both evaluated, for one boolean outcome ``key`` of the rollout
+    records (``success``, ``pregrasp_reached``, ...): both counts, the discordant pairs (``only_cell``: the cell
+    succeeded and the other did not; ``only_other``), the exact McNemar p-value, and the difference of the two
+    rates (cell − other, fractions) with its paired percentile-bootstrap 95 % interval (configurations
+    resampled; ``seed`` fixed so the report is reproducible). None when they share no configuration."""
+    a, b = _cell_rows(eval_dir), _cell_rows(other_dir)
+    both = sorted(set(a) & set(b))
+    if not both:
+        return None
+    x = np.array([bool(a[c].get(key)) for c in both])
+    y = np.array([bool(b[c].get(key)) for c in both])
+    only_a, only_b = int((x & ~y).sum()), int((~x & y).sum())
+    lo, hi = paired_bootstrap_interval(x, y, n_boot=n_boot, seed=seed)
+    return {"n": len(both), "key": key, "cell": int(x.sum()), "other": int(y.sum()), "only_cell": only_a,
+            "only_other": only_b, "mcnemar_p": mcnemar_exact_p(only_a, only_b),
+            "diff": float(x.mean() - y.mean()), "diff_ci95": [lo, hi]}
+
+
+#: the outcomes :func:`_ours_rows` pairs: (where the records are, record key, label)
+PAIRED_OUTCOMES: tuple[tuple[bool, str, str], ...] = ((False, "success", "(a) success"),
+                                                      (False, "pregrasp_reached", "(b) pre-grasp reached"),
+                                                      (True, "success", "(c) learned approach + scripted grasp"))
+
+
+def _ours_rows(cfg, cells) -> list[str]:
+    """Markdown rows: ``ours`` against every other variant of the main grid at the same data size, for each
+    outcome of :data:`PAIRED_OUTCOMES` both cells have."""
+    rows = []
+    for n in cfg.sizes:
+        ours = {"name": f"ours_n{n}"}
+        for c in cells:
+            if c["theta"] is not None or c["variant"] == "ours" or c["n"] != n:
+                continue
+            for handover, key, label in PAIRED_OUTCOMES:
+                if handover and not cfg.eval_handover:
+                    continue
+                p = paired_outcomes(record_eval_dir(cfg, ours, handover), record_eval_dir(cfg, c, handover), key)
+                if p is None:
+                    continue
+                lo, hi = p["diff_ci95"]
+                rows.append(f"| {c['variant']} | {n} | {label} | {p['n']} | {p['cell']} vs {p['other']} | "
+                            f"{p['only_cell']} / {p['only_other']} | {p['mcnemar_p']:.3g} | {100 * p['diff']:+.1f} "
+                            f"[{100 * lo:+.1f}, {100 * hi:+.1f}] |")
+    return rows
+
+
 def _pct(m: dict[str, Any], key: str) -> str:
     v = m[key]
     lo, hi = v["wilson95"]
@@ -122,6 +171,7 @@ def write_report(cfg, cells: list[dict[str, Any]], state: dict[str, Any]) -> dic
     fidelity is computed when both datasets it compares are on this machine (and kept in ``<record>/fidelity.json``),
     otherwise read from there."""
     metrics = {c["name"]: cell_metrics(record_eval_dir(cfg, c)) for c in cells}
+    handover = {c["name"]: cell_metrics(record_eval_dir(cfg, c, True)) for c in cells} if cfg.eval_handover else {}
     big = max(cfg.sizes)
     ours_p = variant_path(cfg, {"name": f"ours_n{big}"})
     gt_p = variant_path(cfg, {"name": f"gt_render_n{big}"})
@@ -138,7 +188,7 @@ def write_report(cfg, cells: list[dict[str, Any]], state: dict[str, Any]) -> dic
             if sp.exists():
                 exports["main" if th is None else f"theta{th:g}"] = json.loads(sp.read_text())
                 break
-    report = {"recipe": _recipe_dict(cfg), "metrics": metrics, "fidelity": fid,
+    report = {"recipe": _recipe_dict(cfg), "metrics": metrics, "handover_metrics": handover, "fidelity": fid,
               "exports": {k: {kk: v.get(kk) for kk in ("n_augmented", "n_failed", "n_resampled", "n_jobs",
                                                       "status_counts", "timings_s")} for k, v in exports.items()},
               "steps": state.get("steps", {})}
@@ -148,8 +198,8 @@ def write_report(cfg, cells: list[dict[str, Any]], state: dict[str, Any]) -> dic
     if sheet is None and frames_sheet_path(cfg).exists():
         sheet = str(frames_sheet_path(cfg))  # made on a machine that had the datasets
     report["frames_sheet"] = sheet
-    _write_md(cfg, cells, metrics, fid, report["exports"], state, report["frames_sheet"])
-    _write_png(cfg, cells, metrics)
+    _write_md(cfg, cells, metrics, fid, report["exports"], state, report["frames_sheet"], handover)
+    _write_png(cfg, cells, metrics, handover)
     return report
 
 
@@ -159,7 +209,17 @@ def _recipe_dict(cfg) -> dict[str, Any]:
     return d
 
 
-def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None) -> None:
+def _handover_cell(cfg, m: dict[str, Any] | None) -> str:
+    """The main table's metric (c) cell: success of the learned approach + scripted grasp, or why it is empty."""
+    if not cfg.eval_handover:
+        return ""
+    return " not evaluated yet |" if m is None else f" {_pct(m, 'success')} |"
+
+
+def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None,
+              handover: dict[str, Any] | None = None) -> None:
+    handover = handover or {}
+    hcol = " (c) learned approach + scripted grasp |" if cfg.eval_handover else ""
     L = [f"# Square study — recipe `{cfg.name}`", "",
          "Generated by `eval/square_study.py` from the study's record (`" + str(cfg.record) + "`); a cell "
          "without an evaluation is marked as such. Success and sub-goals: rate in % with the Wilson 95 % "
@@ -168,20 +228,35 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
          f"the cone sweep]({os.path.relpath(cfg.report_png, Path(cfg.report_md).parent)})",
          "", "## Success and sub-goals", "",
          "| variant | demos | n | success | pre-grasp reached | lifted | inserted | gripper–table | gripper–peg | "
-         "closest approach to pre-grasp: median mm [95 %] / ° | train min | eval min |",
-         "|---|---:|---:|---|---|---|---|---|---|---|---:|---:|"]
+         "closest approach to pre-grasp: median mm [95 %] / ° | train min | eval min |" + hcol,
+         "|---|---:|---:|---|---|---|---|---|---|---|---:|---:|" + ("---|" if hcol else "")]
     for c in cells:
         if c["theta"] is not None:
             continue
         m = metrics[c["name"]]
         tm, em = _minutes(state, f"train/{c['name']}"), _minutes(state, f"eval/{c['name']}")
+        hc = _handover_cell(cfg, handover.get(c["name"]))
         if m is None:
-            L.append(f"| {c['variant']} | {c['n']} | 0 | not evaluated yet | | | | | | | {tm} | {em} |")
+            L.append(f"| {c['variant']} | {c['n']} | 0 | not evaluated yet | | | | | | | {tm} | {em} |" + hc)
             continue
         ca = _closest(m)
         L.append(f"| {c['variant']} | {c['n']} | {m['n']} | {_pct(m, 'success')} | {_pct(m, 'pregrasp_reached')} | "
                  f"{_pct(m, 'lifted')} | {_pct(m, 'inserted')} | {_pct(m, 'collision_table')} | "
-                 f"{_pct(m, 'collision_peg')} | {ca} | {tm} | {em} |")
+                 f"{_pct(m, 'collision_peg')} | {ca} | {tm} | {em} |" + hc)
+    if cfg.eval_handover:
+        L += ["", "(c): the learned policy drives until it reaches the scripted expert's pre-grasp pose (2 cm / 15°) "
+              "or for `handover_step_limit` control steps, then the scripted expert finishes from the state it "
+              f"left (`eval_sim.py handover=expert`; configurations `{handover_configs(cfg)}`): labelled as such, "
+              "never counted as the policy's own success."]
+    ours_rows = _ours_rows(cfg, cells) if "ours" in cfg.variants else []
+    if ours_rows:
+        L += ["", "## `ours` against every other variant, configuration by configuration", "",
+              "On the configurations both cells evaluated: both counts, the discordant pairs (only `ours` / only the "
+              "other succeeded), the exact McNemar p-value on them (two-sided), and the difference of the rates "
+              "(`ours` − other, percentage points) with its paired bootstrap 95 % interval (configurations "
+              "resampled, 10,000 times, seed 0).", "",
+              "| other variant | demos | outcome | paired configurations | ours vs other | only ours / only other | "
+              "McNemar p | Δ rate, pp [95 %] |", "|---|---:|---|---:|---|---|---:|---|", *ours_rows]
     paired = _paired_rows(cfg, cells)
     if paired:
         L += ["", "## Against `none`, configuration by configuration", "",
@@ -197,14 +272,15 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
     if any(c["theta"] is not None for c in cells):
         L += ["", f"## Cone-angle sweep (`ours`, {cfg.sweep_size} demos, r = {cfg.radius_m} m)", "",
               "| θ (°) | n | success | pre-grasp reached | lifted | closest approach: median mm [95 %] / ° | "
-              f"paired vs `none_n{cfg.sweep_size}`: Δ mm [95 %] / Δ ° [95 %] |",
-              "|---:|---:|---|---|---|---|---|"]
+              f"paired vs `none_n{cfg.sweep_size}`: Δ mm [95 %] / Δ ° [95 %] |" + hcol,
+              "|---:|---:|---|---|---|---|---|" + ("---|" if hcol else "")]
 
         for c in sorted(sweep, key=lambda c: cfg.theta_deg if c["theta"] is None else c["theta"]):
             m = metrics[c["name"]]
             th = cfg.theta_deg if c["theta"] is None else c["theta"]
+            hc = _handover_cell(cfg, handover.get(c["name"]))
             if m is None:
-                L.append(f"| {th:g} | 0 | not evaluated yet | | | | |")
+                L.append(f"| {th:g} | 0 | not evaluated yet | | | | |" + hc)
                 continue
             p = paired_vs(record_eval_dir(cfg, c), record_eval_dir(cfg, {"name": f"none_n{cfg.sweep_size}"}))
             pv = "—" if p is None else (
@@ -212,7 +288,7 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
                 f"{p['closest_mm_diff_ci95'][1]:+.0f}] / {p['closest_deg_diff_median']:+.1f} "
                 f"[{p['closest_deg_diff_ci95'][0]:+.1f}, {p['closest_deg_diff_ci95'][1]:+.1f}]")
             L.append(f"| {th:g} | {m['n']} | {_pct(m, 'success')} | {_pct(m, 'pregrasp_reached')} | "
-                     f"{_pct(m, 'lifted')} | {_closest(m)} | {pv} |")
+                     f"{_pct(m, 'lifted')} | {_closest(m)} | {pv} |" + hc)
     L += ["", "## Rendering fidelity of `ours` against `gt_render` at the augmented poses", ""]
     if fid is None:
         L.append("Not computed yet (needs both datasets of the largest data size).")
@@ -243,7 +319,8 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
           f"umi-aug square-demos --n {max(cfg.sizes)} --image-size {cfg.image_size} --workers {cfg.augment_workers} "
           f"--out {cfg.demos_dir}", "",
           "# what one cell runs (here " + ex["name"] + "):", " ".join(train_command(cfg, ex)[1:]),
-          " ".join(eval_command(cfg, ex)[1:]), "```", ""]
+          " ".join(eval_command(cfg, ex)[1:]),
+          *([" ".join(eval_command(cfg, ex, handover=True)[1:])] if cfg.eval_handover else []), "```", ""]
     p = Path(cfg.report_md)
     p.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(p, "\n".join(L))
@@ -270,7 +347,7 @@ def _errorbar_median(ax, xs, meds_cis, **kw) -> None:
     ax.errorbar(xs, a[:, 0], yerr=[a[:, 0] - a[:, 1], a[:, 2] - a[:, 0]], capsize=3, **kw)
 
 
-def _write_png(cfg, cells, metrics) -> None:
+def _write_png(cfg, cells, metrics, handover: dict[str, Any] | None = None) -> None:
     import matplotlib  # lazy, start-up: matplotlib
 
     matplotlib.use("Agg")
@@ -301,11 +378,15 @@ def _write_png(cfg, cells, metrics) -> None:
     axes[3].set_ylabel("°")
     axes[3].set_title("Δ closest orientation vs none (paired, median, 95 %)")
     _legend(axes[3], fontsize=8)
-    for ax, key, title in ((axes[0], "success", "task success"), (axes[1], "pregrasp_reached", "pre-grasp reached")):
+    panels = [(axes[0], "success", "task success", metrics, "", "-"),
+              (axes[1], "pregrasp_reached", "pre-grasp reached", metrics, "", "-")]
+    if handover:  # metric (c) beside (a), dotted, in the variant's colour
+        panels.insert(1, (axes[0], "success", "task success", handover, " (c) + scripted grasp", ":"))
+    for ax, key, title, source, suffix, style in panels:
         for v in cfg.variants:
             xs, ys, lo, hi = [], [], [], []
             for c in cells:
-                m = metrics[c["name"]]
+                m = source.get(c["name"])
                 if c["variant"] != v or c["theta"] is not None or m is None:
                     continue
                 r = m[key]
@@ -314,7 +395,8 @@ def _write_png(cfg, cells, metrics) -> None:
                 lo.append(100 * (r["rate"] - r["wilson95"][0]))
                 hi.append(100 * (r["wilson95"][1] - r["rate"]))
             if xs:
-                ax.errorbar(xs, ys, yerr=[lo, hi], marker="o", capsize=3, label=v, color=colour[v])
+                ax.errorbar(xs, ys, yerr=[lo, hi], marker="o", capsize=3, label=v + suffix, color=colour[v],
+                            linestyle=style)
         ax.set_xlabel("source demos")
         ax.set_ylabel("%")
         ax.set_title(f"{title} (Wilson 95 %)")

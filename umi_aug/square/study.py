@@ -25,6 +25,10 @@ machine continues the study where the record stops. Steps, in the order they run
 3. ``train/<cell>`` — ``train/train.py`` on each dataset (subprocess; resumes from ``latest.ckpt``);
 4. ``eval/<cell>`` — ``eval/eval_sim.py`` on the fixed configuration subset (subprocess; resumes); its results go
    into the record when all configurations are done;
+4b. ``eval_handover/<cell>`` (when ``eval_handover``) — the same evaluation as "learned approach + scripted grasp"
+   (issue #29 part 4, metric c: ``eval_sim.py handover=expert``: the scripted expert takes over once the policy
+   reaches the pre-grasp pose or after ``handover_step_limit`` steps) on ``handover_configs``, recorded alike
+   under ``evals_handover/<cell>``;
 5. the report (:func:`umi_aug.square.report.report_study`) — ``<report_md>`` (tables, commands, wall times) and ``<report_png>`` (success vs data size per
    variant with Wilson 95 % intervals; the cone-angle sweep; sub-goals), plus the rendering fidelity of ``ours``
    vs ``gt_render`` at the augmented poses (PSNR / SSIM, median and 5th percentile).
@@ -58,7 +62,7 @@ from umi_aug.io_utils import RunLockedError, atomic_write_text, exclusive_run_lo
 from umi_aug.square.generate import DemoConfig, generate_demos
 
 __all__ = ["StudyConfig", "load_recipe", "study_cells", "run_study", "load_state", "StudyError", "record_eval_dir",
-           "record_export_summary", "cell_minutes_estimate"]
+           "record_export_summary", "cell_minutes_estimate", "cell_finished", "handover_configs"]
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +99,8 @@ class StudyConfig:
     eval_configs_file: str = "eval/square_init_configs_1000.npz"
     eval_configs: str = "0:1000:5"
     eval_workers: int = 2
+    eval_handover: bool = False
+    handover_configs: str = ""
     budget_min: float = 0.0
     record_dir: str = ""
     report_md: str = "docs/square_study.md"
@@ -243,6 +249,11 @@ def _check_eval_overrides(path, cfg: StudyConfig) -> None:
         raise StudyError(f"{path}: eval_overrides: {exc}") from None
 
 
+def handover_configs(cfg: StudyConfig) -> str:
+    """The configurations of the handover evaluation (``handover_configs``, or ``eval_configs`` when empty)."""
+    return str(cfg.handover_configs) if str(cfg.handover_configs).strip() else str(cfg.eval_configs)
+
+
 def cell_name(variant: str, n: int, theta: float | None = None) -> str:
     """``<variant>_n<n>`` (main cone) or ``<variant>_n<n>_theta<θ>`` (sweep)."""
     return f"{variant}_n{n}" + ("" if theta is None else f"_theta{theta:g}")
@@ -366,16 +377,19 @@ def checkpoint_path(cfg: StudyConfig, cell: dict[str, Any]) -> Path:
     return cfg.out / "runs" / cell["name"] / "checkpoints" / "latest.ckpt"
 
 
-def eval_dir(cfg: StudyConfig, cell: dict[str, Any]) -> Path:
-    return cfg.out / "evals" / cell["name"]
+def eval_dir(cfg: StudyConfig, cell: dict[str, Any], handover: bool = False) -> Path:
+    """A cell's evaluation folder (``evals/``; ``evals_handover/`` for the handover evaluation)."""
+    return cfg.out / ("evals_handover" if handover else "evals") / cell["name"]
 
 
-def eval_command(cfg: StudyConfig, cell: dict[str, Any]) -> list[str]:
-    """The ``eval/eval_sim.py`` command of a cell (fixed configuration subset; resumes)."""
+def eval_command(cfg: StudyConfig, cell: dict[str, Any], handover: bool = False) -> list[str]:
+    """The ``eval/eval_sim.py`` command of a cell (fixed configuration subset; resumes); with ``handover`` the
+    learned-approach + scripted-grasp evaluation (``handover=expert`` on :func:`handover_configs`)."""
+    spec = handover_configs(cfg) if handover else str(cfg.eval_configs)
     return [cfg.python, "eval/eval_sim.py", f"checkpoint={checkpoint_path(cfg, cell)}",
-            f"configs_file={cfg.eval_configs_file}", f"configs='{cfg.eval_configs}'" if "," in cfg.eval_configs
-            else f"configs={cfg.eval_configs}", f"workers={cfg.eval_workers}", f"out_dir={eval_dir(cfg, cell)}",
-            *cfg.eval_overrides]
+            f"configs_file={cfg.eval_configs_file}", f"configs='{spec}'" if "," in spec else f"configs={spec}",
+            f"workers={cfg.eval_workers}", f"out_dir={eval_dir(cfg, cell, handover)}", *cfg.eval_overrides,
+            *(["handover=expert"] if handover else [])]
 
 
 def _run(cmd: list[str], log_path: Path) -> int:
@@ -386,13 +400,14 @@ def _run(cmd: list[str], log_path: Path) -> int:
         return subprocess.call(cmd, stdout=fh, stderr=subprocess.STDOUT)
 
 
-def record_eval_dir(cfg: StudyConfig, cell: dict[str, Any]) -> Path:
-    """Where a finished cell's ``results.jsonl`` / ``summary.json`` are kept (the record)."""
-    return cfg.record / "evals" / cell["name"]
+def record_eval_dir(cfg: StudyConfig, cell: dict[str, Any], handover: bool = False) -> Path:
+    """Where a finished cell's ``results.jsonl`` / ``summary.json`` are kept (the record; ``evals_handover/`` for
+    the handover evaluation)."""
+    return cfg.record / ("evals_handover" if handover else "evals") / cell["name"]
 
 
-def _recorded_rollouts(cfg: StudyConfig, cell: dict[str, Any]) -> int:
-    p = record_eval_dir(cfg, cell) / "summary.json"
+def _recorded_rollouts(cfg: StudyConfig, cell: dict[str, Any], handover: bool = False) -> int:
+    p = record_eval_dir(cfg, cell, handover) / "summary.json"
     if not p.exists():
         return 0
     try:
@@ -439,15 +454,26 @@ def _cell_steps(cfg: StudyConfig, cell: dict[str, Any], phases: tuple[str, ...])
     if "eval" in phases:
         out.append((f"eval/{cell['name']}", lambda: _step_eval(cfg, cell),
                     lambda: _recorded_rollouts(cfg, cell) >= expected_rollouts(cfg)))
+        if cfg.eval_handover:
+            out.append((f"eval_handover/{cell['name']}", lambda: _step_eval(cfg, cell, handover=True),
+                        lambda: _recorded_rollouts(cfg, cell, True) >= expected_rollouts(cfg, True)))
     return out
 
 
+def cell_finished(cfg: StudyConfig, cell: dict[str, Any]) -> bool:
+    """Every evaluation of the cell is in the record (then nothing it needed is made again)."""
+    return (_recorded_rollouts(cfg, cell) >= expected_rollouts(cfg)
+            and (not cfg.eval_handover or _recorded_rollouts(cfg, cell, True) >= expected_rollouts(cfg, True)))
+
+
 def cell_minutes_estimate(cfg: StudyConfig, state: dict[str, Any]) -> float:
-    """Median minutes of train + eval over the cells finished so far (0 when none is): a cell is not started in a
-    time slice that has less than this left, because its checkpoint would not outlive the machine."""
+    """Median minutes of train + eval (+ the handover evaluation, when the recipe has it) over the cells finished
+    so far (0 when none is): a cell is not started in a time slice that has less than this left, because its
+    checkpoint would not outlive the machine."""
     steps = state.get("steps", {})
-    mins = [(steps[f"train/{c['name']}"]["seconds"] + steps[f"eval/{c['name']}"]["seconds"]) / 60.0
-            for c in study_cells(cfg) if steps.get(f"eval/{c['name']}", {}).get("done")
+    kinds = ("train", "eval", "eval_handover") if cfg.eval_handover else ("train", "eval")
+    mins = [sum(steps[f"{k}/{c['name']}"]["seconds"] for k in kinds) / 60.0
+            for c in study_cells(cfg) if all(steps.get(f"{k}/{c['name']}", {}).get("done") for k in kinds[1:])
             and f"train/{c['name']}" in steps]
     return float(np.median(mins)) if mins else 0.0
 
@@ -490,7 +516,9 @@ def _run_study_locked(cfg: StudyConfig, phases: tuple[str, ...]) -> dict[str, An
             return False
         kind = name.split("/")[0]
         partial = {"train": lambda: exists(),
-                   "eval": lambda: (eval_dir(cfg, {"name": name.split("/", 1)[1]}) / "results.jsonl").exists()}
+                   "eval": lambda: (eval_dir(cfg, {"name": name.split("/", 1)[1]}) / "results.jsonl").exists(),
+                   "eval_handover": lambda: (eval_dir(cfg, {"name": name.split("/", 1)[1]}, True)
+                                             / "results.jsonl").exists()}
         resumed = bool(partial.get(kind, lambda: False)())
         t0 = time.perf_counter()
         try:
@@ -507,7 +535,7 @@ def _run_study_locked(cfg: StudyConfig, phases: tuple[str, ...]) -> dict[str, An
     steps: list[tuple[str, Any, Any]] = []
     seen: set[str] = set()
     for c in cells:
-        if "eval" in phases and _recorded_rollouts(cfg, c) >= expected_rollouts(cfg):
+        if "eval" in phases and cell_finished(cfg, c):
             continue  # finished for good: nothing it needed is made again
         for name, fn, exists in _cell_steps(cfg, c, phases):
             if name not in seen:
@@ -525,10 +553,10 @@ def load_state(cfg: StudyConfig) -> dict[str, Any]:
 
 
 def _step_train(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
-    stale = eval_dir(cfg, cell) / "results.jsonl"
-    if not checkpoint_path(cfg, cell).exists() and stale.exists():
-        # rollouts of an earlier checkpoint must not count towards the one trained now: set aside, not deleted
-        stale.rename(stale.with_name(f"results.jsonl.before-{time.strftime('%Y%m%d-%H%M%S')}"))
+    for stale in (eval_dir(cfg, cell) / "results.jsonl", eval_dir(cfg, cell, True) / "results.jsonl"):
+        if not checkpoint_path(cfg, cell).exists() and stale.exists():
+            # rollouts of an earlier checkpoint must not count towards the one trained now: set aside, not deleted
+            stale.rename(stale.with_name(f"results.jsonl.before-{time.strftime('%Y%m%d-%H%M%S')}"))
     rc = _run(train_command(cfg, cell), cfg.out / "runs" / f"{cell['name']}.log")
     if rc != 0:
         raise StudyError(f"train {cell['name']}: exit status {rc}; see {cfg.out / 'runs' / (cell['name'] + '.log')}")
@@ -537,22 +565,25 @@ def _step_train(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
     return {"checkpoint": str(checkpoint_path(cfg, cell))}
 
 
-def expected_rollouts(cfg: StudyConfig) -> int:
-    """Number of configurations in ``eval_configs`` (``a:b[:s]`` or a comma list)."""
-    spec = str(cfg.eval_configs)
+def expected_rollouts(cfg: StudyConfig, handover: bool = False) -> int:
+    """Number of configurations in ``eval_configs`` (``a:b[:s]`` or a comma list; :func:`handover_configs` for the
+    handover evaluation)."""
+    spec = handover_configs(cfg) if handover else str(cfg.eval_configs)
     if ":" in spec:
         parts = [int(p) for p in spec.split(":")]
         return len(range(*parts))
     return len([p for p in spec.split(",") if p.strip()])
 
 
-def _step_eval(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
-    rc = _run(eval_command(cfg, cell), eval_dir(cfg, cell) / "study_eval.log")
+def _step_eval(cfg: StudyConfig, cell: dict[str, Any], handover: bool = False) -> dict[str, Any]:
+    where = eval_dir(cfg, cell, handover)
+    rc = _run(eval_command(cfg, cell, handover), where / "study_eval.log")
+    what = "eval_handover" if handover else "eval"
     if rc != 0:
-        raise StudyError(f"eval {cell['name']}: exit status {rc}; see {eval_dir(cfg, cell) / 'study_eval.log'}")
-    summ = json.loads((eval_dir(cfg, cell) / "summary.json").read_text())
-    done = int(summ["n"]) >= expected_rollouts(cfg)
+        raise StudyError(f"{what} {cell['name']}: exit status {rc}; see {where / 'study_eval.log'}")
+    summ = json.loads((where / "summary.json").read_text())
+    done = int(summ["n"]) >= expected_rollouts(cfg, handover)
     if done:  # results first, summary last: a summary in the record means its results are there
         for f in ("results.jsonl", "summary.json"):
-            _keep(eval_dir(cfg, cell) / f, record_eval_dir(cfg, cell) / f)
+            _keep(where / f, record_eval_dir(cfg, cell, handover) / f)
     return {"n": int(summ["n"]), "success_rate": float(summ["success_rate"]), "_done": done}
