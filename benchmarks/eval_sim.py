@@ -1,15 +1,16 @@
 """Speed of the simulation evaluation loop (umi_aug.eval) and the error bar N configurations give.
 
-Run: ``python benchmarks/eval_sim.py [--steps 24] [--sizes 84 224] [--encoders small clip_vit_b16] [--threads 1]``
+Run: ``python benchmarks/eval_sim.py [--steps 24] [--sizes 84 224] [--encoders small clip_vit_b16] [--threads 1]
+[--overrides task.img_obs_horizon=1 ...] [--every-step-reference]``
 
 Table 1: per policy × image size, ONE short closed-loop rollout (the harness renders only the frames an inference
-looks at; ``--every-step-reference`` adds the same rollout rendering every frame, the old path, for the ratio) of ``--steps`` control steps (20 Hz) from start
-configuration 0 in this process (1 torch thread = one eval worker), the per-step time split (simulation /
-rendering / policy incl. inference every ``n_action_steps`` steps / other) and the rollouts/hour that gives for a
-400-step rollout (the horizon a failing rollout runs to) on 1 worker and on 2 workers (×2, i.e. assuming the two
-cores are free). The policies are the training configs ``configs/policy/small.yaml`` and ``clip_vit_b16.yaml`` with
-RANDOM weights (CLIP weights are not available offline; the speed does not depend on the values) and an identity
-normaliser; the scripted expert (no images) is the reference row measured in the same run.
+looks at; ``--every-step-reference`` adds the same rollout rendering every frame, the old path, for the ratio) of
+``--steps`` control steps (20 Hz) from start configuration 0 in this process (1 torch thread = one eval worker), the
+per-step time split (simulation / rendering / policy incl. inference every ``n_action_steps`` steps / other) and the
+rollouts/hour that gives for a 400-step rollout (the horizon a failing rollout runs to) on 1 worker and on 2 workers
+(×2, i.e. assuming the two cores are free). The policies are the training configs ``configs/policy/small.yaml`` and
+``clip_vit_b16.yaml`` with RANDOM weights (CLIP weights are not available offline; the speed does not depend on the
+values) and an identity normaliser; the scripted expert (no images) is the reference row measured in the same run.
 Table 2: Wilson 95 % interval half-width vs N for true success rates 50 / 80 / 95 %.
 Timings are wall clock on whatever cores this process gets (project machines: 2 shared cores).
 """
@@ -26,14 +27,14 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
-def _random_policy(encoder: str, size: int):
-    """A :class:`umi_aug.policy.Policy` of the training config ``policy=<encoder>`` + ``task=square`` at ``size``²,
-    random weights, identity normaliser."""
+def _random_policy(encoder: str, size: int, overrides: tuple[str, ...] = ()):
+    """A :class:`umi_aug.policy.Policy` of the training config ``policy=<encoder>`` + ``task=square`` at ``size``²
+    (+ Hydra ``overrides``, e.g. ``task.img_obs_horizon=1``), random weights, identity normaliser."""
     from hydra import compose, initialize_config_dir
 
     from umi_aug.policy import Policy
     from umi_aug.policy.config import shape_meta, structured_config
-    from umi_aug.policy.diffusion_policy import DiffusionUnetPolicy
+    from umi_aug.policy.heads import build_policy
     from umi_aug.policy.normalizer import LinearNormalizer, identity_params
 
     with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
@@ -43,10 +44,10 @@ def _random_policy(encoder: str, size: int):
 
         ConfigStore.instance().store(name="train_schema", node=TrainConfig)
         raw = compose("train", overrides=[f"policy={encoder}", "task=square", f"task.image_size={size}",
-                                          "policy.encoder.pretrained_path=null"])
+                                          "policy.encoder.pretrained_path=null", *overrides])
     cfg = structured_config(raw)
     meta = shape_meta(cfg.task)
-    model = DiffusionUnetPolicy(meta, cfg.policy, warn_random_init=False)
+    model = build_policy(meta, cfg.policy, warn_random_init=False)
     norm = LinearNormalizer()
     for k, v in meta["obs"].items():
         if v["type"] == "low_dim":
@@ -54,7 +55,8 @@ def _random_policy(encoder: str, size: int):
     norm.set("action", *identity_params(meta["action"]["shape"][0]))
     model.set_normalizer(norm)
     n_params = sum(p.numel() for p in model.parameters())
-    return Policy(model, cfg, "cpu"), n_params, cfg.policy.num_inference_steps
+    k = cfg.policy.num_inference_steps if cfg.policy.action_head == "diffusion" else 1  # forward passes
+    return Policy(model, cfg, "cpu"), n_params, k
 
 
 def _measure(env, probe, policy, state, steps: int, camera=None, render_every_step: bool = False) -> dict:
@@ -73,6 +75,8 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[84, 224])
     ap.add_argument("--encoders", nargs="+", default=["small", "clip_vit_b16"])
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 = one eval worker)")
+    ap.add_argument("--overrides", nargs="*", default=[],
+                    help="Hydra overrides for every policy, e.g. task.img_obs_horizon=1 (the study's one-frame recipe)")
     ap.add_argument("--every-step-reference", action="store_true",
                     help="also time each policy rendering the wrist frame at every step (before wants_image)")
     args = ap.parse_args()
@@ -101,12 +105,13 @@ def main() -> None:
     rows = [("expert (no images)", "—", "—", _measure(env, probe, ExpertEvalPolicy(), state, args.steps))]
     for enc in args.encoders:
         for size in args.sizes:
-            pol, n_params, k = _random_policy(enc, size)
+            pol, n_params, k = _random_policy(enc, size, tuple(args.overrides))
             ev = CheckpointEvalPolicy(pol)
             cam = WristFisheyeCamera(env.model, size)
             try:
                 _measure(env, probe, ev, state, 2, cam)  # warm-up (first inference, GL context)
-                label = f"{enc} ({n_params / 1e6:.0f} M, {k} den. steps, {ev.n_exec}/inference)"
+                label = (f"{enc} ({n_params / 1e6:.0f} M, {k} forward pass(es), {ev.n_exec}/inference, "
+                         f"{pol.task.img_obs_horizon} image frame(s))")
                 if args.every_step_reference:
                     rows.append((f"{label}, every frame rendered", f"{size}²", str(ev.n_exec),
                                  _measure(env, probe, ev, state, args.steps, cam, render_every_step=True)))

@@ -198,24 +198,28 @@ def report(record_dir: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for f in sorted(record_dir.glob("*.jsonl")):
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5))
+    files = sorted(record_dir.glob("*.jsonl"))
+    colours = plt.get_cmap("tab20")  # one colour per curve (the default cycle repeats after 10)
+    for i, f in enumerate(files):
         rows = sorted(_rows(f), key=lambda r: r["step"])
         if not rows:
             continue
         # a row may record minutes its training process spent paused (SIGSTOP, for benchmarks on idle cores)
         m = [r["train_minutes"] - r.get("paused_minutes", 0.0) for r in rows]
-        axes[0].plot(m, [100 * r["success"] for r in rows], "o-", label=f.stem)
-        axes[1].plot(m, [100 * (r["pregrasp"] or 0) for r in rows], "o-", label=f.stem)
+        style = {"color": colours(i % 20), "marker": "os^"[i // 20 % 3], "label": f.stem}
+        axes[0].plot(m, [100 * r["success"] for r in rows], "-", **style)
+        axes[1].plot(m, [100 * (r["pregrasp"] or 0) for r in rows], "-", **style)
     for ax, what in zip(axes, ("full-task success", "pre-grasp reached")):
         ax.set_xlabel("training minutes (2 CPU cores)")
         ax.set_ylabel(f"{what} (%)")
         ax.set_ylim(-2, 102)
         ax.grid(alpha=0.3)
-        ax.legend()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="center left", bbox_to_anchor=(0.79, 0.5), fontsize=8)
     fig.suptitle("square, in-distribution resets (eval/square_init_configs_reset100.npz)")
     out = record_dir / "curves.png"
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 0.78, 1))
     fig.savefig(out, dpi=110)
     return out
 

@@ -77,16 +77,17 @@ class PolicyDriver:
         """True iff the frame of the coming :meth:`act` enters some future inference's observation window.
 
         Inferences happen when the queue runs empty: in ``q`` steps (``q`` = rows still queued; now if 0), then
-        every ``L = n_action_steps · obs_down_sample_steps`` steps; each looks back at offsets
-        ``0, down, …, (To−1)·down``. The very first frame is always kept (early windows pad with it); with no fixed
-        ``n_action_steps`` every frame is. With UMI's ``To = 2``, 8 executed targets and ``down = 1`` this renders
-        2 frames in 8.
+        every ``L = n_action_steps · obs_down_sample_steps`` steps; each looks at the images at offsets
+        ``0, down, …, (img_obs_horizon−1)·down`` (the window's newest ``img_obs_horizon`` frames; the low-dim rows
+        further back need no image). The very first frame is always kept (early windows pad with it); with no
+        fixed ``n_action_steps`` every frame is. With UMI's two image frames, 8 executed targets and ``down = 1``
+        this renders 2 frames in 8; with one image frame (and two low-dim rows), 1 in 8.
         """
         q = len(self._queue)
         if q == 0 or not self._hist or self.spec.n_action_steps is None:
             return True
         L = self.spec.n_action_steps * self._down
-        return any(k * self._down >= q and (k * self._down - q) % L == 0 for k in range(self._To))
+        return any(k * self._down >= q and (k * self._down - q) % L == 0 for k in range(self.spec.img_obs_horizon))
 
     def _obs_dict(self) -> dict[str, Any]:
         h = list(self._hist)
