@@ -172,6 +172,11 @@ RECIPES: dict[str, dict] = {
     "policy=small_regression": {"policy": dict(_REG)},
     "policy=small_regression_ssm": {"policy": {**_REG, **_SSM}},
     "policy=small_regression_ssm img_obs_horizon=1": {"policy": {**_REG, **_SSM}, "task": {"img_obs_horizon": 1}},
+    "the study's (cpu_regression): + task.obs_pose_repr=abs": {
+        "policy": {**_REG, **_SSM}, "task": {"img_obs_horizon": 1, "obs_pose_repr": "abs"}},
+    "the study's + policy.encoder.resnet_width=64 (ResNet-18)": {
+        "policy": {**_REG, "encoder": {**_SSM["encoder"], "resnet_width": 64}},
+        "task": {"img_obs_horizon": 1, "obs_pose_repr": "abs"}},
 }
 
 
@@ -308,6 +313,7 @@ def main() -> None:
     ap.add_argument("--loop-rounds", type=int, default=2)
     ap.add_argument("--recipes", default=None, metavar="DATASET",
                     help="time the learning-curve recipes' whole training loop on this 84² square demo dataset")
+    ap.add_argument("--only", default="", help="with --recipes: only the recipes whose name contains this text")
     args = ap.parse_args()
     configure_threads()
     import torch
@@ -317,7 +323,10 @@ def main() -> None:
         print(f"training loop per recipe — batch 64, 84² square demos {args.recipes}, {torch.get_num_threads()} "
               f"threads, {args.loop_steps} steps per run, {args.loop_rounds} rounds alternating")
         fast = LOOP_VARIANTS["+ channels-last ResNet (after, fp32)"]
-        _speed_table(_alternated_loops(Path(args.recipes), {k: (fast, v) for k, v in RECIPES.items()},
+        chosen = {k: (fast, v) for k, v in RECIPES.items() if args.only in k}
+        if not chosen:
+            ap.error(f"--only {args.only!r} matches no recipe; the recipes are: {'; '.join(RECIPES)}")
+        _speed_table(_alternated_loops(Path(args.recipes), chosen,
                                        args.loop_steps, args.loop_rounds), "recipe (train.py overrides)")
         return
     if args.loop:

@@ -23,7 +23,7 @@ import torch
 from umi_aug.errors import PolicyError
 from umi_aug.io_utils import atomic_path
 
-__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "checkpoint_file_problem"]
+__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "slim_checkpoint", "checkpoint_file_problem"]
 
 CHECKPOINT_FORMAT = "umi_aug.policy/1"
 
@@ -35,6 +35,28 @@ def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
     with atomic_path(path) as tmp:
         torch.save(payload, str(tmp))
     return path
+
+
+def slim_checkpoint(src: str | os.PathLike, dest: str | os.PathLike, half: bool = False) -> Path:
+    """Write the part of checkpoint ``src`` that inference reads to ``dest``: ``cfg``, ``pickles`` and the weights
+    (the EMA model's when it has one, else the model's), without the optimiser, scheduler, EMA counters and RNG
+    (a quarter of the file with Adam's two moments). ``half``: floating weights as float16, except the normaliser's
+    buffers (ranges float16 cannot hold); :meth:`Policy.from_checkpoint` loads them into the float32 model.
+    Training cannot resume from the result."""
+    payload = load_checkpoint(src)
+    sd = payload["state_dicts"]
+    key = "ema_model" if "ema_model" in sd else "model"
+    weights = {}
+    for name, t in sd[key].items():
+        if half and t.is_floating_point() and "normalizer" not in name:
+            if t.abs().max().item() > torch.finfo(torch.float16).max:
+                raise PolicyError(f"checkpoint {src}: {key}.{name} exceeds float16's range; slim it with half=False")
+            t = t.to(torch.float16)
+        weights[name] = t
+    out = {k: v for k, v in payload.items() if k not in ("format", "state_dicts", "rng")}
+    out["state_dicts"] = {key: weights}
+    out["slim"] = {"from": Path(src).name, "weights": key, "half": bool(half)}
+    return save_checkpoint(dest, out)
 
 
 def checkpoint_file_problem(path: str | os.PathLike) -> str | None:

@@ -394,6 +394,9 @@ class TrainWorkspace:
         global_step, epoch, skip = 0, 0, 0  # skip: batches of `epoch` already trained (a mid-epoch checkpoint)
         if t.resume and self.ckpt_path.exists():
             payload = load_checkpoint(self.ckpt_path, map_location=device)
+            if "slim" in payload:
+                raise PolicyError(f"{self.ckpt_path}: a slim checkpoint (weights for inference only, "
+                                  "umi_aug.policy.checkpoint.slim_checkpoint): training cannot resume from it")
             sd = payload["state_dicts"]
             policy.load_state_dict(sd["model"])
             optimizer.load_state_dict(sd["optimizer"])

@@ -1,0 +1,81 @@
+"""The lossless bundle of a replay buffer (umi_aug.data.carry): every array comes back equal to the source's
+decoded array, on fresh random data, wrap-around differences included."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from umi_aug.data import ReplayBuffer
+from umi_aug.data.carry import episode_frames_decode, episode_frames_encode, main, pack_bundle, unpack_bundle
+from umi_aug.errors import DatasetError
+from tests.data.helpers import random_episode
+
+
+def _buffer(tmp_path, rng, lengths, zip_=True):
+    buf = ReplayBuffer.create()
+    for n in lengths:
+        ep = random_episode(rng, n, size=16)
+        ep["camera0_rgb"][n // 2] = rng.integers(0, 256, ep["camera0_rgb"][n // 2].shape, dtype=np.uint8)  # noise
+        buf.add_episode(ep)
+    path = tmp_path / ("src.zarr.zip" if zip_ else "src.zarr")
+    buf.save(path)
+    return path
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_frame_encoding_round_trip(seed):
+    rng = np.random.default_rng()  # fresh each run
+    t = int(rng.integers(1, 6))
+    frames = rng.integers(0, 256, (t, 5, 7, 3), dtype=np.uint8)
+    frames[0] = 255  # a wrap-around difference on the next frame
+    np.testing.assert_array_equal(episode_frames_decode(episode_frames_encode(frames), frames.shape), frames)
+    with pytest.raises(DatasetError, match="bytes decoded"):
+        episode_frames_decode(episode_frames_encode(frames), (t + 1, 5, 7, 3))
+
+
+@pytest.mark.parametrize("zip_", [True, False])
+def test_pack_unpack_equals_the_decoded_source(tmp_path, zip_):
+    rng = np.random.default_rng()
+    src = _buffer(tmp_path, rng, [int(n) for n in rng.integers(1, 9, 3)], zip_)
+    pack_bundle(src, tmp_path / "bundle", progress=False)
+    out = unpack_bundle(tmp_path / "bundle", tmp_path / "out.zarr", progress=False)
+    a, b = ReplayBuffer.open(src).root, ReplayBuffer.open(out).root  # opening validates the unpacked buffer
+    assert sorted(a["data"].array_keys()) == sorted(b["data"].array_keys())
+    for key in a["data"].array_keys():
+        x, y = a[f"data/{key}"], b[f"data/{key}"]
+        assert x.dtype == y.dtype and x.chunks == y.chunks, key
+        np.testing.assert_array_equal(x[:], y[:], err_msg=key)
+    np.testing.assert_array_equal(a["meta/episode_ends"][:], b["meta/episode_ends"][:])
+    assert dict(a.attrs) == dict(b.attrs)
+    # the first k episodes only
+    first = unpack_bundle(tmp_path / "bundle", tmp_path / "first.zarr", episodes=2, progress=False)
+    c = ReplayBuffer.open(first).root
+    n2 = int(a["meta/episode_ends"][1])
+    np.testing.assert_array_equal(c["meta/episode_ends"][:], a["meta/episode_ends"][:2])
+    for key in a["data"].array_keys():
+        np.testing.assert_array_equal(c[f"data/{key}"][:], a[f"data/{key}"][:n2], err_msg=key)
+
+
+def test_bad_bundles_name_the_problem(tmp_path, capsys):
+    with pytest.raises(DatasetError, match="manifest.json"):
+        unpack_bundle(tmp_path, tmp_path / "x.zarr")
+    src = _buffer(tmp_path, np.random.default_rng(), [3, 4])
+    pack_bundle(src, tmp_path / "bundle", progress=False)
+    (tmp_path / "kept.zarr").mkdir()
+    (tmp_path / "kept.zarr" / "mine").write_text("user data")
+    with pytest.raises(DatasetError, match="kept.zarr exists"):
+        unpack_bundle(tmp_path / "bundle", tmp_path / "kept.zarr")
+    with pytest.raises(DatasetError, match="bundle exists"):
+        pack_bundle(src, tmp_path / "bundle")
+    assert (tmp_path / "kept.zarr" / "mine").read_text() == "user data"
+    with pytest.raises(DatasetError, match="episodes=3: the bundle holds 2"):
+        unpack_bundle(tmp_path / "bundle", tmp_path / "x.zarr", episodes=3)
+    assert not (tmp_path / "x.zarr").exists()
+    m = tmp_path / "bundle" / "manifest.json"
+    m.write_text(json.dumps({**json.loads(m.read_text()), "format": "other/9"}))
+    assert main(["unpack", str(tmp_path / "bundle"), str(tmp_path / "y.zarr")]) == 2
+    assert "format 'other/9'" in capsys.readouterr().err
+    assert not (tmp_path / "y.zarr").exists()
