@@ -62,6 +62,10 @@ def test_pack_unpack_equals_the_decoded_source(tmp_path, zip_):
 def test_bad_bundles_name_the_problem(tmp_path, capsys):
     with pytest.raises(DatasetError, match="manifest.json"):
         unpack_bundle(tmp_path, tmp_path / "x.zarr")
+    ReplayBuffer.create().save(tmp_path / "empty.zarr.zip")
+    with pytest.raises(DatasetError, match="no episode"):
+        pack_bundle(tmp_path / "empty.zarr.zip", tmp_path / "e")
+    assert not (tmp_path / "e").exists()
     src = _buffer(tmp_path, np.random.default_rng(), [3, 4])
     pack_bundle(src, tmp_path / "bundle", progress=False)
     (tmp_path / "kept.zarr").mkdir()

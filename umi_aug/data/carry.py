@@ -66,15 +66,20 @@ def episode_frames_decode(blob: bytes, shape: tuple[int, ...]) -> np.ndarray:
 def pack_bundle(src: str | os.PathLike, dest: str | os.PathLike, progress: bool = True) -> dict[str, Any]:
     """Write the bundle of the replay buffer ``src`` (zarr directory or ``.zarr.zip``) to the folder ``dest``
     (written beside it, then renamed; an existing ``dest`` is refused). Returns the manifest."""
-    from tqdm import tqdm
-
     from umi_aug.data.replay_buffer import ReplayBuffer
 
     src, dest = Path(src), Path(dest)
     _refuse_existing(dest)
-    buf = ReplayBuffer.open(src)
-    root = buf.root
+    with ReplayBuffer.open(src) as buf:
+        return _pack_root(buf.root, src, dest, progress)
+
+
+def _pack_root(root: Any, src: Path, dest: Path, progress: bool) -> dict[str, Any]:
+    from tqdm import tqdm
+
     ends = np.asarray(root["meta/episode_ends"][:], dtype=np.int64)
+    if len(ends) == 0:
+        raise DatasetError(f"{src}: no episode (meta/episode_ends is empty): nothing to pack")
     starts = np.concatenate([[0], ends[:-1]])
     manifest: dict[str, Any] = {"format": BUNDLE_FORMAT, "source": src.name, "episode_ends": ends.tolist(),
                                 "root_attrs": dict(root.attrs), "arrays": {}}
