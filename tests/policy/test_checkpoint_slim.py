@@ -47,7 +47,7 @@ def test_slim_keeps_the_ema_weights_and_loads(tmp_path, half):
             assert torch.isfinite(w).all(), k
 
 
-def test_half_refuses_weights_out_of_range_and_training_refuses_a_slim_checkpoint(tmp_path):
+def test_bad_weights_and_an_existing_destination_are_refused_and_training_refuses_a_slim_checkpoint(tmp_path):
     src, ema = _with_ema(tmp_path)
     payload = load_checkpoint(src)
     name = next(k for k, v in ema.items() if v.is_floating_point() and "normalizer" not in k)
@@ -57,6 +57,17 @@ def test_half_refuses_weights_out_of_range_and_training_refuses_a_slim_checkpoin
     with pytest.raises(PolicyError, match=f"{name} exceeds float16"):
         slim_checkpoint(big, tmp_path / "x.ckpt", half=True)
     assert not (tmp_path / "x.ckpt").exists()
+
+    payload["state_dicts"]["ema_model"][name] = payload["state_dicts"]["ema_model"][name] * float("nan")
+    nan = save_checkpoint(tmp_path / "nan.ckpt", payload)
+    for half in (False, True):
+        with pytest.raises(PolicyError, match=f"{name} holds NaN"):
+            slim_checkpoint(nan, tmp_path / "x.ckpt", half=half)
+    assert not (tmp_path / "x.ckpt").exists()
+    before = src.read_bytes()
+    with pytest.raises(PolicyError, match="exists; it is never replaced"):
+        slim_checkpoint(src, src)
+    assert src.read_bytes() == before
 
     ds = make_dataset(tmp_path / "d.zarr.zip", np.random.default_rng(0), n_episodes=2)
     cfg = tiny_config(ds, tmp_path)

@@ -42,13 +42,18 @@ def slim_checkpoint(src: str | os.PathLike, dest: str | os.PathLike, half: bool 
     (the EMA model's when it has one, else the model's), without the optimiser, scheduler, EMA counters and RNG
     (a quarter of the file with Adam's two moments). ``half``: floating weights as float16, except the normaliser's
     buffers (ranges float16 cannot hold); :meth:`Policy.from_checkpoint` loads them into the float32 model.
-    Training cannot resume from the result."""
+    Training cannot resume from the result. An existing ``dest`` and non-finite weights are refused."""
+    if Path(dest).exists():
+        raise PolicyError(f"slim checkpoint {dest} exists; it is never replaced (it could be the training "
+                          "checkpoint itself): pick another path")
     payload = load_checkpoint(src)
     sd = payload["state_dicts"]
     key = "ema_model" if "ema_model" in sd else "model"
     weights = {}
     for name, t in sd[key].items():
-        if half and t.is_floating_point() and "normalizer" not in name:
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise PolicyError(f"checkpoint {src}: {key}.{name} holds NaN or Inf; not slimmed")
+        if half and t.is_floating_point() and "normalizer" not in name and t.numel():
             if t.abs().max().item() > torch.finfo(torch.float16).max:
                 raise PolicyError(f"checkpoint {src}: {key}.{name} exceeds float16's range; slim it with half=False")
             t = t.to(torch.float16)
