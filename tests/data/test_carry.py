@@ -1,5 +1,6 @@
 """The lossless bundle of a replay buffer (umi_aug.data.carry): every array comes back equal to the source's
-decoded array, on fresh random data, wrap-around differences included."""
+decoded array, on fresh random data, wrap-around differences included; a packed single file (a checkpoint) comes
+back byte for byte, and a damaged one is refused."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ import numpy as np
 import pytest
 
 from umi_aug.data import ReplayBuffer
-from umi_aug.data.carry import episode_frames_decode, episode_frames_encode, main, pack_bundle, unpack_bundle
+from umi_aug.data.carry import (
+    episode_frames_decode, episode_frames_encode, main, pack_bundle, pack_file, shuffle4, unpack_bundle, unpack_file,
+    unshuffle4,
+)
 from umi_aug.errors import DatasetError
 from tests.data.helpers import random_episode
 
@@ -83,3 +87,65 @@ def test_bad_bundles_name_the_problem(tmp_path, capsys):
     assert main(["unpack", str(tmp_path / "bundle"), str(tmp_path / "y.zarr")]) == 2
     assert "format 'other/9'" in capsys.readouterr().err
     assert not (tmp_path / "y.zarr").exists()
+
+
+def _shuffle4_reference(data: bytes) -> bytes:
+    """Byte j of word i goes to position j * words + i (loops; zero padding to whole words)."""
+    padded = data + b"\0" * ((-len(data)) % 4)
+    words = len(padded) // 4
+    out = bytearray(len(padded))
+    for i in range(words):
+        for j in range(4):
+            out[j * words + i] = padded[4 * i + j]
+    return bytes(out)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 3, 4, 5, 7, 64, 1001])
+def test_shuffle4_matches_the_loop_and_inverts(n):
+    data = np.random.default_rng().integers(0, 256, n, dtype=np.uint8).tobytes()  # fresh each run
+    shuffled = shuffle4(data)
+    assert shuffled == _shuffle4_reference(data)
+    assert unshuffle4(shuffled, n) == data
+    with pytest.raises(DatasetError, match="cannot hold"):
+        unshuffle4(shuffled, n + 4)
+
+
+@pytest.mark.parametrize("tail", [0, 1, 2, 3])
+def test_packed_file_round_trip_byte_for_byte(tmp_path, tail):
+    rng = np.random.default_rng()  # fresh each run
+    weights = rng.normal(0, 0.05, 20_000).astype(np.float32)
+    adam_v = (rng.random(20_000) * 1e-6).astype(np.float32)
+    data = b"PK header" + weights.tobytes() + adam_v.tobytes() + bytes(rng.integers(0, 256, tail, dtype=np.uint8))
+    src = tmp_path / "latest.ckpt"
+    src.write_bytes(data)
+    info = pack_file(src, tmp_path / "x.s4xz")
+    assert info["bytes"] == len(data) and info["packed_bytes"] < len(data)
+    assert unpack_file(tmp_path / "x.s4xz", tmp_path / "back.ckpt") == tmp_path / "back.ckpt"
+    assert (tmp_path / "back.ckpt").read_bytes() == data
+    with pytest.raises(DatasetError, match="exists"):
+        unpack_file(tmp_path / "x.s4xz", tmp_path / "back.ckpt")
+    with pytest.raises(DatasetError, match="exists"):
+        pack_file(src, tmp_path / "x.s4xz")
+
+
+def test_damaged_packed_files_are_refused_and_nothing_is_written(tmp_path, capsys):
+    src = tmp_path / "a.ckpt"
+    src.write_bytes(np.random.default_rng().normal(size=5000).astype(np.float32).tobytes())
+    pack_file(src, tmp_path / "a.s4xz")
+    blob = (tmp_path / "a.s4xz").read_bytes()
+    (tmp_path / "cut.s4xz").write_bytes(blob[:-100])
+    (tmp_path / "other.s4xz").write_bytes(b"not packed" + blob)
+    wrong_sha = bytearray(blob)
+    wrong_sha[len(b"umi_aug.carry.s4xz/1\n") + 8] ^= 0xFF  # first byte of the stored SHA-256
+    (tmp_path / "sha.s4xz").write_bytes(bytes(wrong_sha))
+    for name, match in (("cut", "corrupt or cut short"), ("other", "not a file written by"),
+                        ("sha", "do not match the SHA-256")):
+        with pytest.raises(DatasetError, match=match):
+            unpack_file(tmp_path / f"{name}.s4xz", tmp_path / f"{name}.out")
+        assert not (tmp_path / f"{name}.out").exists()
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    with pytest.raises(DatasetError, match="empty"):
+        pack_file(tmp_path / "empty.ckpt", tmp_path / "e.s4xz")
+    assert main(["unpack-file", str(tmp_path / "cut.s4xz"), str(tmp_path / "c.out")]) == 2
+    assert "corrupt or cut short" in capsys.readouterr().err
+    assert main(["pack-file", str(src), str(tmp_path / "b.s4xz")]) == 0 and (tmp_path / "b.s4xz").is_file()

@@ -187,10 +187,15 @@ def test_a_fresh_machine_continues_from_the_record(tmp_path, monkeypatch):
     shutil.rmtree(tmp_path / "demos")
     calls.clear()
     _fake_steps(monkeypatch, calls)
+    st.run_study(cfg, ("data", "train"))  # without the eval phase too, a finished cell is not trained again
+    assert calls == ["demos", "export", "variant/ours_n25", "train/ours_n25"]
+    shutil.rmtree(cfg.out)
+    shutil.rmtree(tmp_path / "demos")
+    calls.clear()
     state = st.run_study(cfg, ("data", "train", "eval"))
     # only the unfinished cell, and only what it needs
     assert calls == ["demos", "export", "variant/ours_n25", *_cell("ours_n25")]
-    assert state["steps"]["export"]["reruns"] == 1 and state["steps"]["train/ours_n25"]["reruns"] == 1
+    assert state["steps"]["export"]["reruns"] == 2 and state["steps"]["train/ours_n25"]["reruns"] == 2
     assert "reruns" not in state["steps"]["train/none_n10"]
     assert state["steps"]["eval/ours_n25"]["done"]
     assert json.loads((tmp_path / "record" / "evals" / "ours_n25" / "summary.json").read_text())["n"] == 200
@@ -274,6 +279,22 @@ def test_report_marks_unevaluated_cells_and_counts_what_was_recorded(tmp_path, r
     assert f"| none | 10 | {n} | {100 * k / n:.1f} [" in md
     assert md.count("not evaluated yet") == 3 + 1  # none_n25, ours_n10, ours_n25; sweep θ = 50 (ours_n10)
     assert "| 40 | 5 |" in md and "| train/none_n10 | 2.0 |" in md
+    assert "†" not in md  # no step ran elsewhere
+    # an evaluation made on a lent machine: its minutes there, marked, with a note naming the machine
+    lent = cfg.record / "lent_machine" / "steps.json"
+    lent.parent.mkdir(parents=True)
+    lent.write_text(json.dumps({"eval/none_n10": {"seconds": 273.0, "machine": "lent H200 machine", "workers": 16}}))
+    write_report(cfg, cells, {"steps": {"train/none_n10": {"seconds": 120.0, "done": True},
+                                        "eval/none_n10": {"seconds": 2.5, "done": True}}})
+    md_lent = Path(cfg.report_md).read_text()
+    assert "| eval/none_n10 | 4.5 † |" in md_lent and f"| none | 10 | {n} |" in md_lent
+    assert "| 2.0 | 4.5 † |" in md_lent  # train min, eval min of the cell's row
+    assert "`eval/none_n10`: lent H200 machine, 16 workers" in md_lent and "lent_machine/README.md" in md_lent
+    assert "‡" not in md_lent  # no ours cell evaluated: nothing paired across machines
+    lent.write_text(json.dumps({"eval/none_n10": {"seconds": -1, "machine": "x"}}))
+    with pytest.raises(st.StudyError, match=r"steps \['eval/none_n10'\] need"):
+        write_report(cfg, cells, {"steps": {}})
+    lent.unlink()
     row40 = next(line for line in md.splitlines() if line.startswith("| 40 | 5 |")).split("|")
     assert row40[7].strip().startswith("+0 [") and "/ +0.0 [" in row40[7]  # paired vs none_n10: the same rows
     assert Path(cfg.report_png).stat().st_size > 10_000
@@ -391,6 +412,19 @@ def test_handover_evaluation_is_a_step_of_its_own_and_the_report_pairs_ours_with
     row = next(line for line in md.splitlines() if line.startswith("| none | 25 | (a) success |"))
     assert f"| {only_o} / {only_n} |" in row and f"{100 * p['diff']:+.1f} [" in row
     assert "handover=expert" in md  # its command
+    assert "‡" not in md  # every cell evaluated on one machine
+    # ours_n25's (a)/(b) evaluation made on a lent machine: its pairs with cells evaluated here are marked, and (c)
+    # (evaluated here for both) is not
+    lent = cfg.record / "lent_machine" / "steps.json"
+    lent.parent.mkdir(parents=True, exist_ok=True)
+    lent.write_text(json.dumps({"eval/ours_n25": {"seconds": 250.0, "machine": "lent GPU machine"}}))
+    write_report(cfg, st.study_cells(cfg), st.load_state(cfg))
+    md_lent = Path(cfg.report_md).read_text()
+    for label in ("(a) success", "(b) pre-grasp reached"):
+        assert f"| none ‡ | 25 | {label} | {n} |" in md_lent and f"| spartn ‡ | 25 | {label} | {n} |" in md_lent
+    assert "| none | 25 | (c) learned approach + scripted grasp |" in md_lent
+    assert "‡ the two cells were evaluated on different machines" in md_lent
+    lent.unlink()
     no_c = _cfg(tmp_path, *over, f"report_md={tmp_path / 'r2.md'}")
     write_report(no_c, st.study_cells(no_c), st.load_state(no_c))
     md2 = Path(no_c.report_md).read_text()

@@ -16,6 +16,15 @@ equal to the source's decoded arrays, chunks and attributes as in the source. On
 
     python -m umi_aug.data.carry pack square_demos/square_expert_fisheye84.zarr.zip .carry/square50
     python -m umi_aug.data.carry unpack .carry/square50 /tmp/square50.zarr          # on the other machine
+
+A single file of float32 tensors (a training checkpoint: weights, EMA weights, Adam moments) travels as
+:func:`pack_file` writes it: its bytes regrouped by position in each 4-byte word (all first bytes, then all second
+bytes, ...; the sign/exponent bytes of neighbouring floats are alike) and xz-compressed, with its size and SHA-256 in
+the header; :func:`unpack_file` gives back the same bytes, checked against that SHA-256. A study checkpoint of the
+2 M-parameter square policy, 32.4 MB, becomes about 26 MB (plain xz: 29 MB). Only the standard library and numpy.
+
+    python -m umi_aug.data.carry pack-file runs/none_n50/checkpoints/latest.ckpt .carry/none_n50.ckpt.s4xz
+    python -m umi_aug.data.carry unpack-file .carry/none_n50.ckpt.s4xz /tmp/none_n50.ckpt   # there
 """
 
 from __future__ import annotations
@@ -32,7 +41,8 @@ import numpy as np
 from umi_aug.errors import DatasetError
 from umi_aug.io_utils import atomic_path
 
-__all__ = ["BUNDLE_FORMAT", "pack_bundle", "unpack_bundle", "episode_frames_encode", "episode_frames_decode"]
+__all__ = ["BUNDLE_FORMAT", "pack_bundle", "unpack_bundle", "episode_frames_encode", "episode_frames_decode",
+           "pack_file", "unpack_file", "shuffle4", "unshuffle4"]
 
 BUNDLE_FORMAT = "umi_aug.carry/1"
 _MANIFEST = "manifest.json"
@@ -179,19 +189,104 @@ def unpack_bundle(bundle: str | os.PathLike, dest: str | os.PathLike, episodes: 
     return dest
 
 
+#: Header of a :func:`pack_file` file: magic, then the original size (uint64 LE) and its SHA-256.
+_FILE_MAGIC = b"umi_aug.carry.s4xz/1\n"
+
+
+def shuffle4(data: bytes) -> bytes:
+    """``data`` zero-padded to a multiple of 4 bytes, regrouped by byte position within each 4-byte word: bytes
+    0, 4, 8, ..., then 1, 5, 9, ..., then 2, ..., then 3, ... (the layout Blosc calls byte shuffle)."""
+    pad = (-len(data)) % 4
+    words = np.frombuffer(data + b"\0" * pad, dtype=np.uint8).reshape(-1, 4)
+    return np.ascontiguousarray(words.T).tobytes()
+
+
+def unshuffle4(data: bytes, size: int) -> bytes:
+    """Inverse of :func:`shuffle4`: the first ``size`` bytes of the regrouped ``data`` back in order."""
+    if len(data) % 4 or not 0 <= size <= len(data) < size + 4:
+        raise DatasetError(f"packed file: {len(data)} shuffled bytes cannot hold {size} bytes")
+    return np.ascontiguousarray(np.frombuffer(data, dtype=np.uint8).reshape(4, -1).T).tobytes()[:size]
+
+
+def _sha256_bytes(data: bytes) -> bytes:
+    import hashlib
+
+    return hashlib.sha256(data).digest()
+
+
+def pack_file(src: str | os.PathLike, dest: str | os.PathLike, preset: int = 6) -> dict[str, Any]:
+    """Write ``src`` byte-shuffled (:func:`shuffle4`) and xz-compressed to the new file ``dest`` (temp path, then
+    rename). Returns ``{"bytes", "packed_bytes", "sha256"}``.
+
+    Raises:
+        DatasetError: ``src`` missing or empty, or ``dest`` exists.
+    """
+    import lzma
+
+    src, dest = Path(src), Path(dest)
+    if not src.is_file() or src.stat().st_size == 0:
+        raise DatasetError(f"{src}: not a file, or empty; nothing to pack")
+    _refuse_existing(dest)
+    data = src.read_bytes()
+    digest = _sha256_bytes(data)
+    with atomic_path(dest, overwrite=False) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(_FILE_MAGIC + len(data).to_bytes(8, "little") + digest)
+            f.write(lzma.compress(shuffle4(data), preset=preset))
+    return {"bytes": len(data), "packed_bytes": dest.stat().st_size, "sha256": digest.hex()}
+
+
+def unpack_file(src: str | os.PathLike, dest: str | os.PathLike) -> Path:
+    """Write the file packed in ``src`` (by :func:`pack_file`) to the new file ``dest``; its SHA-256 is checked
+    before anything is written. Returns ``dest``.
+
+    Raises:
+        DatasetError: ``src`` is not a packed file, is cut short or corrupt, or ``dest`` exists.
+    """
+    import lzma
+
+    src, dest = Path(src), Path(dest)
+    _refuse_existing(dest)
+    try:
+        blob = src.read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"{src}: unreadable ({exc})") from exc
+    head = len(_FILE_MAGIC) + 8 + 32
+    if not blob.startswith(_FILE_MAGIC) or len(blob) < head:
+        raise DatasetError(f"{src}: not a file written by `python -m umi_aug.data.carry pack-file`")
+    size = int.from_bytes(blob[len(_FILE_MAGIC):len(_FILE_MAGIC) + 8], "little")
+    digest = blob[len(_FILE_MAGIC) + 8:head]
+    try:
+        data = unshuffle4(lzma.decompress(blob[head:]), size)
+    except lzma.LZMAError as exc:
+        raise DatasetError(f"{src}: corrupt or cut short ({exc})") from exc
+    if _sha256_bytes(data) != digest:
+        raise DatasetError(f"{src}: unpacked bytes do not match the SHA-256 {digest.hex()} packed with them")
+    with atomic_path(dest, overwrite=False) as tmp:
+        tmp.write_bytes(data)
+    return dest
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m umi_aug.data.carry", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
-    a = sub.add_parser("pack", help="replay buffer → bundle folder")
-    a.add_argument("src")
-    a.add_argument("dest")
-    b = sub.add_parser("unpack", help="bundle folder → zarr directory store")
-    b.add_argument("bundle")
-    b.add_argument("dest")
-    b.add_argument("--episodes", type=int, default=None, help="only the first N episodes")
+    for cmd, help_, src in (("pack", "replay buffer → bundle folder", "src"),
+                            ("unpack", "bundle folder → zarr directory store", "bundle"),
+                            ("pack-file", "one file (a checkpoint) → byte-shuffled xz file", "src"),
+                            ("unpack-file", "byte-shuffled xz file → the original file (SHA-256 checked)", "src")):
+        a = sub.add_parser(cmd, help=help_)
+        a.add_argument(src)
+        a.add_argument("dest")
+        if cmd == "unpack":
+            a.add_argument("--episodes", type=int, default=None, help="only the first N episodes")
     args = p.parse_args(argv)
     try:
-        if args.cmd == "pack":
+        if args.cmd == "pack-file":
+            r = pack_file(args.src, args.dest)
+            print(f"{args.dest}: {r['bytes'] / 1e6:.1f} MB → {r['packed_bytes'] / 1e6:.1f} MB, sha256 {r['sha256']}")
+        elif args.cmd == "unpack-file":
+            print(unpack_file(args.src, args.dest))
+        elif args.cmd == "pack":
             m = pack_bundle(args.src, args.dest)
             size = sum(f.stat().st_size for f in Path(args.dest).iterdir())
             print(f"{args.dest}: {len(m['episode_ends'])} episodes, {size / 1e6:.1f} MB")

@@ -18,8 +18,8 @@ import numpy as np
 from umi_aug.eval.results import ResultsLog
 from umi_aug.eval.stats import mcnemar_exact_p, median_interval, paired_bootstrap_interval, wilson_interval
 from umi_aug.io_utils import atomic_path, atomic_write_text
-from umi_aug.square.study import (eval_command, export_path, handover_configs, load_state, record_eval_dir,
-                                  record_export_summary, study_cells, train_command, variant_path)
+from umi_aug.square.study import (StudyError, eval_command, export_path, handover_configs, load_state,
+                                  record_eval_dir, record_export_summary, study_cells, train_command, variant_path)
 
 __all__ = ["cell_metrics", "paired_vs", "paired_outcomes", "fidelity", "report_study", "write_report",
            "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
@@ -102,9 +102,15 @@ PAIRED_OUTCOMES: tuple[tuple[bool, str, str], ...] = ((False, "success", "(a) su
                                                       (True, "success", "(c) learned approach + scripted grasp"))
 
 
-def _ours_rows(cfg, cells) -> list[str]:
+def _machine(lent: dict[str, dict[str, Any]], step: str) -> str:
+    """Where a step ran: the lent machine's name, or ``"here"`` (the study's own machine)."""
+    return lent[step]["machine"] if step in lent else "here"
+
+
+def _ours_rows(cfg, cells, lent: dict[str, dict[str, Any]] | None = None) -> list[str]:
     """Markdown rows: ``ours`` against every other variant of the main grid at the same data size, for each
-    outcome of :data:`PAIRED_OUTCOMES` both cells have."""
+    outcome of :data:`PAIRED_OUTCOMES` both cells have; a pair evaluated on two different machines is marked ‡."""
+    lent = lent or {}
     rows = []
     for n in cfg.sizes:
         ours = {"name": f"ours_n{n}"}
@@ -118,7 +124,9 @@ def _ours_rows(cfg, cells) -> list[str]:
                 if p is None:
                     continue
                 lo, hi = p["diff_ci95"]
-                rows.append(f"| {c['variant']} | {n} | {label} | {p['n']} | {p['cell']} vs {p['other']} | "
+                step = "eval_handover/" if handover else "eval/"
+                mark = " ‡" if _machine(lent, step + ours["name"]) != _machine(lent, step + c["name"]) else ""
+                rows.append(f"| {c['variant']}{mark} | {n} | {label} | {p['n']} | {p['cell']} vs {p['other']} | "
                             f"{p['only_cell']} / {p['only_other']} | {p['mcnemar_p']:.3g} | {100 * p['diff']:+.1f} "
                             f"[{100 * lo:+.1f}, {100 * hi:+.1f}] |")
     return rows
@@ -137,8 +145,10 @@ def _closest(m: dict[str, Any]) -> str:
     return f"{m['closest_pregrasp_mm_median']:.0f} [{lo:.0f}, {hi:.0f}] / {m['closest_pregrasp_deg_median']:.1f}"
 
 
-def _paired_rows(cfg, cells) -> list[str]:
-    """Markdown rows: every evaluated cell of the main grid against ``none`` at the same data size."""
+def _paired_rows(cfg, cells, lent: dict[str, dict[str, Any]] | None = None) -> list[str]:
+    """Markdown rows: every evaluated cell of the main grid against ``none`` at the same data size (‡: the two were
+    evaluated on different machines)."""
+    lent = lent or {}
     rows = []
     for c in cells:
         if c["theta"] is not None or c["variant"] == "none":
@@ -148,15 +158,66 @@ def _paired_rows(cfg, cells) -> list[str]:
             continue
         lo, hi = p["closest_mm_diff_ci95"]
         rlo, rhi = p["closest_deg_diff_ci95"]
-        rows.append(f"| {c['variant']} | {c['n']} | {p['n']} | {p['closest_mm_diff_median']:+.0f} [{lo:+.0f}, "
+        mark = " ‡" if _machine(lent, f"eval/{c['name']}") != _machine(lent, f"eval/none_n{c['n']}") else ""
+        rows.append(f"| {c['variant']}{mark} | {c['n']} | {p['n']} | {p['closest_mm_diff_median']:+.0f} [{lo:+.0f}, "
                     f"{hi:+.0f}] | {p['closer']} / {p['n']} | {p['closest_deg_diff_median']:+.1f} [{rlo:+.1f}, "
                     f"{rhi:+.1f}] | {p['closer_deg']} / {p['n']} | {p['successes']} vs {p['baseline_successes']} |")
     return rows
 
 
-def _minutes(state: dict[str, Any], step: str) -> str:
+#: In the record: steps whose work ran on another machine (a lent GPU machine's evaluation, eval/lent_gpu_eval.sh),
+#: ``{"<step>": {"seconds": wall time there, "machine": "...", "workers": N}}``, and the folder's README beside it.
+LENT_STEPS = "lent_machine/steps.json"
+
+
+def lent_steps(cfg) -> dict[str, dict[str, Any]]:
+    """The record's :data:`LENT_STEPS` (empty when there is none).
+
+    Raises:
+        StudyError: the file is not a JSON object of step → {"seconds": number ≥ 0, "machine": str, ...}.
+    """
+    path = cfg.record / LENT_STEPS
+    if not path.exists():
+        return {}
+    try:
+        steps = json.loads(path.read_text())
+    except ValueError as exc:
+        raise StudyError(f"{path}: not JSON ({exc})") from exc
+    bad = [k for k, v in (steps.items() if isinstance(steps, dict) else [("(file)", None)])
+           if not isinstance(v, dict) or not isinstance(v.get("machine"), str)
+           or not isinstance(v.get("seconds"), (int, float)) or not v["seconds"] >= 0]
+    if bad:
+        raise StudyError(f"{path}: steps {bad} need {{\"seconds\": wall time ≥ 0, \"machine\": \"...\"}}")
+    return steps
+
+
+def _minutes(state: dict[str, Any], step: str, lent: dict[str, dict[str, Any]] | None = None) -> str:
+    """A step's wall minutes: the record's, or, for a step that ran on a lent machine, the time there (marked †)."""
+    if lent and step in lent:
+        return f"{lent[step]['seconds'] / 60.0:.1f} †"
     row = state.get("steps", {}).get(step)
     return "—" if row is None else f"{row['seconds'] / 60.0:.1f}" + ("" if row.get("done") else " (partial)")
+
+
+def _cross_machine_note(cfg, rows: list[str]) -> list[str]:
+    if not any(" ‡ |" in r for r in rows):
+        return []
+    readme = cfg.record / Path(LENT_STEPS).parent / "README.md"
+    return ["", "‡ the two cells were evaluated on different machines (one on a lent GPU machine, whose renderer "
+                "draws the wrist frames a little differently): a machine effect is part of this difference; how "
+                f"large it can be: [{Path(LENT_STEPS).parent}/README.md]"
+                f"({os.path.relpath(readme, Path(cfg.report_md).parent)})."]
+
+
+def _lent_note(cfg, lent: dict[str, dict[str, Any]]) -> list[str]:
+    if not lent:
+        return []
+    where = "; ".join(f"`{k}`: {v['machine']}" + (f", {v['workers']} workers" if v.get("workers") else "")
+                      for k, v in lent.items())
+    readme = cfg.record / Path(LENT_STEPS).parent / "README.md"
+    return ["", f"† ran on another machine, and its minutes are the wall time there ({where}); how, and whether the "
+                f"machine changes outcomes: [{Path(LENT_STEPS).parent}/README.md]"
+                f"({os.path.relpath(readme, Path(cfg.report_md).parent)})."]
 
 
 def report_study(cfg) -> dict[str, Any]:
@@ -198,7 +259,7 @@ def write_report(cfg, cells: list[dict[str, Any]], state: dict[str, Any]) -> dic
     if sheet is None and frames_sheet_path(cfg).exists():
         sheet = str(frames_sheet_path(cfg))  # made on a machine that had the datasets
     report["frames_sheet"] = sheet
-    _write_md(cfg, cells, metrics, fid, report["exports"], state, report["frames_sheet"], handover)
+    _write_md(cfg, cells, metrics, fid, report["exports"], state, report["frames_sheet"], handover, lent_steps(cfg))
     _write_png(cfg, cells, metrics, handover)
     return report
 
@@ -217,8 +278,8 @@ def _handover_cell(cfg, m: dict[str, Any] | None) -> str:
 
 
 def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None,
-              handover: dict[str, Any] | None = None) -> None:
-    handover = handover or {}
+              handover: dict[str, Any] | None = None, lent: dict[str, dict[str, Any]] | None = None) -> None:
+    handover, lent = handover or {}, lent or {}
     hcol = " (c) learned approach + scripted grasp |" if cfg.eval_handover else ""
     L = [f"# Square study — recipe `{cfg.name}`", "",
          "Generated by `eval/square_study.py` from the study's record (`" + str(cfg.record) + "`); a cell "
@@ -234,7 +295,7 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
         if c["theta"] is not None:
             continue
         m = metrics[c["name"]]
-        tm, em = _minutes(state, f"train/{c['name']}"), _minutes(state, f"eval/{c['name']}")
+        tm, em = _minutes(state, f"train/{c['name']}", lent), _minutes(state, f"eval/{c['name']}", lent)
         hc = _handover_cell(cfg, handover.get(c["name"]))
         if m is None:
             L.append(f"| {c['variant']} | {c['n']} | 0 | not evaluated yet | | | | | | | {tm} | {em} |" + hc)
@@ -248,7 +309,8 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
               "or for `handover_step_limit` control steps, then the scripted expert finishes from the state it "
               f"left (`eval_sim.py handover=expert`; configurations `{handover_configs(cfg)}`): labelled as such, "
               "never counted as the policy's own success."]
-    ours_rows = _ours_rows(cfg, cells) if "ours" in cfg.variants else []
+    L += _lent_note(cfg, lent)
+    ours_rows = _ours_rows(cfg, cells, lent) if "ours" in cfg.variants else []
     if ours_rows:
         L += ["", "## `ours` against every other variant, configuration by configuration", "",
               "On the configurations both cells evaluated: both counts, the discordant pairs (only `ours` / only the "
@@ -256,8 +318,9 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
               "(`ours` − other, percentage points) with its paired bootstrap 95 % interval (configurations "
               "resampled, 10,000 times, seed 0).", "",
               "| other variant | demos | outcome | paired configurations | ours vs other | only ours / only other | "
-              "McNemar p | Δ rate, pp [95 %] |", "|---|---:|---|---:|---|---|---:|---|", *ours_rows]
-    paired = _paired_rows(cfg, cells)
+              "McNemar p | Δ rate, pp [95 %] |", "|---|---:|---|---:|---|---|---:|---|", *ours_rows,
+              *_cross_machine_note(cfg, ours_rows)]
+    paired = _paired_rows(cfg, cells, lent)
     if paired:
         L += ["", "## Against `none`, configuration by configuration", "",
               "Every cell is evaluated on the same configurations, so each can be paired with `none` at the same "
@@ -267,7 +330,7 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
               "both.", "",
               "| variant | demos | paired configurations | Δ closest position, median mm [95 %] | closer | "
               "Δ closest orientation, median ° [95 %] | closer | successes (cell vs none) |",
-              "|---|---:|---:|---|---:|---|---:|---|", *paired]
+              "|---|---:|---:|---|---:|---|---:|---|", *paired, *_cross_machine_note(cfg, paired)]
     sweep = [c for c in cells if c["theta"] is not None or (c["variant"] == "ours" and c["n"] == cfg.sweep_size)]
     if any(c["theta"] is not None for c in cells):
         L += ["", f"## Cone-angle sweep (`ours`, {cfg.sweep_size} demos, r = {cfg.radius_m} m)", "",
@@ -312,7 +375,8 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
                  f"{t.get('plan_s', 0):.0f} | {t.get('render_s', 0):.0f} | {t.get('total_s', 0):.0f} |")
     L += ["", "## Wall time per step (minutes)", "", "| step | minutes |", "|---|---:|"]
     for name in state.get("steps", {}):
-        L.append(f"| {name} | {_minutes(state, name)} |")
+        L.append(f"| {name} | {_minutes(state, name, lent)} |")
+    L += _lent_note(cfg, lent)
     ex = cells[0]
     L += ["", "## Commands", "", "```", f"python eval/square_study.py recipe={cfg.name}   # all steps, resumable", "",
           "# the source demos (the study makes them when demos_dir lacks them):",

@@ -479,8 +479,9 @@ def cell_minutes_estimate(cfg: StudyConfig, state: dict[str, Any]) -> float:
 
 
 def run_study(cfg: StudyConfig, phases: tuple[str, ...] = ("data", "train", "eval")) -> dict[str, Any]:
-    """Run (or resume) the study's steps of ``phases`` (data, train, eval) in order; returns the state dict. The
-    report is :func:`umi_aug.square.report.report_study`."""
+    """Run (or resume) the study's steps of ``phases`` (data, train, eval) in order; returns the state dict. A cell
+    whose evaluations are in the record is skipped in every phase (``phases=data,train`` on a fresh machine does not
+    train it again). The report is :func:`umi_aug.square.report.report_study`."""
     # one run at a time per outputs and record: a second run would interleave its steps and overwrite the state
     locks = {(cfg.out / STUDY_LOCK).resolve(): f"square study on {cfg.out}",
              (cfg.record / STUDY_LOCK).resolve(): f"square study recording into {cfg.record}"}  # one if they coincide
@@ -535,8 +536,8 @@ def _run_study_locked(cfg: StudyConfig, phases: tuple[str, ...]) -> dict[str, An
     steps: list[tuple[str, Any, Any]] = []
     seen: set[str] = set()
     for c in cells:
-        if "eval" in phases and cell_finished(cfg, c):
-            continue  # finished for good: nothing it needed is made again
+        if cell_finished(cfg, c):
+            continue  # finished for good, whatever the phases: nothing it needed is made or trained again
         for name, fn, exists in _cell_steps(cfg, c, phases):
             if name not in seen:
                 seen.add(name)
