@@ -8,14 +8,13 @@ of it meshes of robots the square task never loads. The bundle keeps:
   meshes and textures, only the files the square scene's compiled MuJoCo model names (``file="…"``): 77 files,
   47.7 MB, of 586 MB of assets. The scene built from the bundle is the installed one, file for file
   (``tests/square/test_carry_sim.py`` renders both and compares);
-* robomimic: its ``.py`` and ``.json`` files.
-
+* robomimic: its ``.py`` and ``.json`` files;
 * the wheels given (for the other machine's Python: mujoco, PyOpenGL for MuJoCo's EGL backend, numcodecs, zarr,
   hydra-core, ...; ``eval/lent_gpu_eval.sh`` lists them), unzipped as pip would install them, ``*.data/`` left out.
 
 All of it goes into one ``site.tar.xz`` whose members are site-packages paths, so ``tar -xJf site.tar.xz -C SITE``
-and ``PYTHONPATH=SITE`` make the packages importable there: about 20 MB for the square task's needs, against 30 MB of
-wheels plus robosuite's 193 MB. ``manifest.json`` lists what went in (versions, file counts, sizes, SHA-256).
+and ``PYTHONPATH=SITE`` make the packages importable there: 19.3 MB with the ten wheels ``eval/lent_gpu_eval.sh``
+lists (20.3 MB as wheels), where robosuite's wheel alone is 193 MB. ``manifest.json`` lists what went in (versions, file counts, sizes, SHA-256).
 
     python -m umi_aug.square.carry_sim pack .carry/sim --wheels .whl/*.whl     # here (robosuite + robomimic installed)
 
@@ -44,8 +43,7 @@ from umi_aug.errors import SimError
 from umi_aug.io_utils import atomic_path
 
 __all__ = ["SIM_BUNDLE_FORMAT", "square_scene_asset_files", "package_text_files", "square_bundle_members",
-           "pack_sim_bundle",
-           "probe_frames", "frame_differences"]
+           "pack_sim_bundle", "probe_frames", "frame_differences"]
 
 SIM_BUNDLE_FORMAT = "umi_aug.carry_sim/1"
 #: Source and data files every robosuite / robomimic module may read (code, configs, model XML).
