@@ -6,8 +6,8 @@
 #   pip download (cp312 manylinux wheels; README of the device tool) mujoco==3.9.0 PyOpenGL==3.1.10
 #       numcodecs==0.15.2 zarr==2.18.7 hydra-core==1.3.8 omegaconf==2.3.1 Deprecated==1.3.1 termcolor==3.3.0 -d .whl
 #   pip wheel --no-deps -w .whl antlr4-python3-runtime==4.9.3 asciitree==0.3.3
-#   python -m umi_aug.square.carry_sim pack .carry/sim --wheels .whl/*.whl     # 19 MB (without diffusers' wheel)
-#   python -m umi_aug.data.carry pack-file <run>/checkpoints/latest.ckpt .carry/ckpt/<name>.ckpt.s4xz   # ~26 MB
+#   python -m umi_aug.square.carry_sim pack .carry/sim --wheels .whl/*.whl     # 19.3 MB (no diffusers wheel needed)
+#   python -m umi_aug.data.carry pack-file <run>/checkpoints/latest.ckpt .carry/ckpt/<name>.ckpt.s4xz   # 32.4 → 23.2 MB
 #   (GL loaders, used only if the machine lacks libEGL: apt-get download libegl1 libglvnd0 libopengl0 libgl1
 #    libglx0 libgles2 into .carry/gl)
 # then, as the device call's command (carry: .carry):

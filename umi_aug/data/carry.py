@@ -21,7 +21,8 @@ A single file of float32 tensors (a training checkpoint: weights, EMA weights, A
 :func:`pack_file` writes it: its bytes regrouped by position in each 4-byte word (all first bytes, then all second
 bytes, ...; the sign/exponent bytes of neighbouring floats are alike) and xz-compressed, with its size and SHA-256 in
 the header; :func:`unpack_file` gives back the same bytes, checked against that SHA-256. A study checkpoint of the
-2 M-parameter square policy, 32.4 MB, becomes about 26 MB (plain xz: 29 MB). Only the standard library and numpy.
+2 M-parameter square policy after 10,000 steps, 32.4 MB, becomes 23.2 MB (one after 20 steps: 25.6 MB, plain xz
+28.9 MB). Only the standard library and numpy.
 
     python -m umi_aug.data.carry pack-file runs/none_n50/checkpoints/latest.ckpt .carry/none_n50.ckpt.s4xz
     python -m umi_aug.data.carry unpack-file .carry/none_n50.ckpt.s4xz /tmp/none_n50.ckpt   # there
