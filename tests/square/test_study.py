@@ -429,3 +429,30 @@ def test_handover_evaluation_is_a_step_of_its_own_and_the_report_pairs_ours_with
     write_report(no_c, st.study_cells(no_c), st.load_state(no_c))
     md2 = Path(no_c.report_md).read_text()
     assert "(c)" not in md2 and "| none | 25 | (a) success |" in md2  # (a) and (b) pair without the handover
+
+
+def test_rollout_ends_partition_the_rollouts_and_the_report_shows_them(tmp_path, rng):
+    from umi_aug.square.report import ENDS, cell_metrics, rollout_ends, write_report
+
+    n = 300
+    flags = rng.random((n, 4)) < [0.1, 0.3, 0.4, 0.3]  # success, lifted, pre-grasp, peg contact
+    rows = [{"config": i, "success": bool(s), "inserted": bool(s), "lifted": bool(lf or (s and i % 2)),
+             "pregrasp_reached": bool(p), "collision_peg": bool(c), "collision_table": False,
+             "pregrasp_min_pos_err_m": 0.01, "pregrasp_min_rot_err_deg": 1.0, "max_nut_rise_m": 0.0}
+            for i, (s, lf, p, c) in enumerate(flags)]
+    e = rollout_ends(rows)
+    assert sum(e[k] for k in ENDS) == n
+    s, lf, p, c = (np.array([r[k] for r in rows]) for k in ("success", "lifted", "pregrasp_reached", "collision_peg"))
+    assert e["success"] == s.sum()  # a success counts as one whether or not its record says lifted
+    assert e["lifted_touched_peg"] == (~s & lf & c).sum() and e["lifted_no_peg_contact"] == (~s & lf & ~c).sum()
+    assert e["pregrasp_not_lifted"] == (~s & ~lf & p).sum() and e["no_pregrasp_not_lifted"] == (~s & ~lf & ~p).sum()
+    assert e["lifted_without_pregrasp"] == ((s | lf) & ~p).sum()
+    assert rollout_ends([]) == dict.fromkeys(ENDS, 0) | {"lifted_without_pregrasp": 0}
+    cfg = _cfg(tmp_path, "variants=[none,ours]", "sweep_thetas=[]")
+    _write_results(st.eval_dir(cfg, {"name": "ours_n10"}), rows)
+    assert cell_metrics(st.eval_dir(cfg, {"name": "ours_n10"}))["ends"] == e
+    write_report(cfg, st.study_cells(cfg), {"steps": {}})
+    md = Path(cfg.report_md).read_text()
+    assert "## Where the rollouts end" in md
+    assert f"| `ours_n10` | {n} | " + " | ".join(str(e[k]) for k in ENDS) + f" | {e['lifted_without_pregrasp']} |" in md
+    assert "| `none_n10` |" not in md  # not evaluated: no row

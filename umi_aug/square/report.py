@@ -51,7 +51,33 @@ def cell_metrics(eval_dir: Path) -> dict[str, Any] | None:
     out["closest_pregrasp_mm_ci95"] = list(median_interval(pos)) if pos else None
     out["closest_pregrasp_deg_median"] = float(np.median(rot)) if rot else None
     out["nut_moved"] = int(sum((r.get("max_nut_rise_m") or 0.0) >= 0.005 for r in rows))
+    out["ends"] = rollout_ends(rows)
     return out
+
+
+#: :func:`rollout_ends`' classes, in the order the report shows them (they partition a cell's rollouts).
+ENDS: tuple[str, ...] = ("success", "lifted_touched_peg", "lifted_no_peg_contact", "pregrasp_not_lifted",
+                         "no_pregrasp_not_lifted")
+
+
+def rollout_ends(rows: list[dict[str, Any]]) -> dict[str, int]:
+    """Where each rollout ended, from ``eval_sim``'s records: a partition of the rollouts into :data:`ENDS` —
+    succeeded; lifted the nut but did not insert it, with a gripper geom touching either peg at some step
+    (``collision_peg``) or never;
+    never lifted it, having reached the scripted expert's pre-grasp pose or not — plus ``lifted_without_pregrasp``
+    (across classes: lifts, successful or not, that never reached the pre-grasp pose first)."""
+    ends = dict.fromkeys(ENDS, 0)
+    for r in rows:
+        if r.get("success"):
+            k = "success"
+        elif r.get("lifted"):
+            k = "lifted_touched_peg" if r.get("collision_peg") else "lifted_no_peg_contact"
+        else:
+            k = "pregrasp_not_lifted" if r.get("pregrasp_reached") else "no_pregrasp_not_lifted"
+        ends[k] += 1
+    ends["lifted_without_pregrasp"] = int(sum(bool(r.get("lifted") or r.get("success"))
+                                              and not r.get("pregrasp_reached") for r in rows))
+    return ends
 
 
 def paired_vs(eval_dir: Path, baseline_dir: Path) -> dict[str, Any] | None:
@@ -270,6 +296,29 @@ def _recipe_dict(cfg) -> dict[str, Any]:
     return d
 
 
+def _ends_section(cells, metrics) -> list[str]:
+    """The table of :func:`rollout_ends` for every evaluated cell (nothing when none is evaluated)."""
+    rows = []
+    for c in cells:
+        m = metrics[c["name"]]
+        if m is None:
+            continue
+        e = m["ends"]
+        rows.append(f"| `{c['name']}` | {m['n']} | " + " | ".join(str(e[k]) for k in ENDS)
+                    + f" | {e['lifted_without_pregrasp']} |")
+    if not rows:
+        return []
+    return ["", "## Where the rollouts end", "",
+            "Each cell's rollouts by how far they got (counts; the five columns after n add up to n). Lifted = the "
+            "nut rose off the table held by a finger; a peg touched = a gripper geom (hand or finger) touched either "
+            "peg. The last column counts the lifts (successful or not) that never reached the scripted expert's "
+            "pre-grasp pose (2 cm / 15°) first: grasps from elsewhere on the handle.", "",
+            "| cell | n | success | lifted, not inserted: gripper touched a peg | lifted, not inserted: gripper never "
+            "touched a peg | not lifted: pre-grasp reached | not lifted: pre-grasp never reached | lifts without "
+            "pre-grasp |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|", *rows]
+
+
 def _handover_cell(cfg, m: dict[str, Any] | None) -> str:
     """The main table's metric (c) cell: success of the learned approach + scripted grasp, or why it is empty."""
     if not cfg.eval_handover:
@@ -352,6 +401,7 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
                 f"[{p['closest_deg_diff_ci95'][0]:+.1f}, {p['closest_deg_diff_ci95'][1]:+.1f}]")
             L.append(f"| {th:g} | {m['n']} | {_pct(m, 'success')} | {_pct(m, 'pregrasp_reached')} | "
                      f"{_pct(m, 'lifted')} | {_closest(m)} | {pv} |" + hc)
+    L += _ends_section(cells, metrics)
     L += ["", "## Rendering fidelity of `ours` against `gt_render` at the augmented poses", ""]
     if fid is None:
         L.append("Not computed yet (needs both datasets of the largest data size).")
