@@ -51,6 +51,8 @@ SETTINGS: dict[str, dict[str, object]] = {
     "3DGS 15k Gaussians (30k)": {"splat.max_gaussians": 15_000},
     "no background shell": {"inp.background_points": 0},
     "3DGS scale_reg 1.0 (0.01)": {"splat.scale_reg": 1.0},
+    # the same scene (exact: tests/splat/test_render_pixels.py), only the time differs
+    "3DGS renders every pixel (only the loss mask's)": {"splat.extra": {"loss_pixels_only": False}},
 }
 
 #: The 3DGS step's parts (``SplatTrainResult.timings`` keys) the table shows, in ms per training step.

@@ -199,8 +199,21 @@ def check_min_transmittance(min_transmittance: float) -> float:
     return v
 
 
+def active_pixels(pixels: np.ndarray | Tensor | None, height: int, width: int) -> np.ndarray:
+    """``pixels`` as the rasteriser's C-contiguous ``[H, W]`` bool mask (None: every pixel); raises
+    :class:`SplatError` naming the shape or dtype it got otherwise."""
+    if pixels is None:
+        return np.ones((height, width), dtype=bool)
+    m = pixels.detach().cpu().numpy() if isinstance(pixels, Tensor) else np.asarray(pixels)
+    if m.dtype != np.bool_ or m.shape != (height, width):
+        raise SplatError(f"pixels: expected a bool mask of shape {(height, width)} (H, W), got {m.dtype} "
+                         f"{m.shape}")
+    return np.ascontiguousarray(m)
+
+
 def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray, fused: bool = False,
-                     min_transmittance: float = TRANSMITTANCE_THRESHOLD) -> dict[str, np.ndarray]:
+                     min_transmittance: float = TRANSMITTANCE_THRESHOLD,
+                     pixels: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Forward rasterisation in the dtype of ``packed`` (``uv64 [G, 2]``: the means in float64).
 
     ``min_transmittance``: a pixel stops at the first Gaussian that would bring its transmittance below this
@@ -211,6 +224,11 @@ def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray, fus
     (``K.raster_fwd_fused_kernel``, ~x1.16; results within rounding of the plain one); float64 (the tests'
     reference comparisons) always runs the plain kernel. A forward whose backward will run must stay unfused: the
     backward re-evaluates every pair with the plain kernel's instructions.
+
+    ``pixels``: ``[H, W]`` bool, the pixels to composite (None: all). The others are left empty (``rgb`` and
+    ``depth`` 0, ``T`` 1, ``last`` -1) at no cost where a whole tile is left out; the pixels composited are
+    exactly what an all-pixel call gives. The backward needs nothing more: a pixel with nothing composited
+    passes no gradient.
 
     Returns ``rgb`` [H, W, 3] (no background), ``depth`` [H, W] (not normalised), ``T`` [H, W], ``last``
     [H, W] int32 and ``evals`` [n_tiles]."""
@@ -227,7 +245,8 @@ def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray, fus
     with _parallel(16 * binning.n_isects + H * W, PARALLEL_CHUNK):
         (K.raster_fwd_fused_kernel if fused and dt == np.float32 else K.raster_fwd_kernel)(
             packed, uv64, binning.tile_start, binning.sorted_row, W, H, binning.tiles_x, xs, ys,
-            K.raster_constants(dt, min_transmittance), out["rgb"], out["depth"], out["T"], out["last"], out["evals"],
+            K.raster_constants(dt, min_transmittance), active_pixels(pixels, H, W), out["rgb"], out["depth"], out["T"],
+            out["last"], out["evals"],
         )
     return out
 
@@ -270,19 +289,21 @@ def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, de
 class RasterizeGaussians(torch.autograd.Function):
     """Differentiable tile rasteriser (numba forward and hand-written backward).
 
-    ``forward(means2d [V, 2], conics [V, 3], opacities [V], colors [V, 3], depths [V], width, height)`` returns
-    ``(rgb_acc [H, W, 3], depth_acc [H, W], T_final [H, W])`` without background; the working dtype is the
-    inputs' (float32 or float64). Gradients flow to all five inputs.
+    ``forward(means2d [V, 2], conics [V, 3], opacities [V], colors [V, 3], depths [V], width, height, stats,
+    pixels)`` returns ``(rgb_acc [H, W, 3], depth_acc [H, W], T_final [H, W])`` without background; the working
+    dtype is the inputs' (float32 or float64). Gradients flow to all five inputs. ``pixels``: as in
+    :func:`rasterize_packed` (the pixels left out are empty and pass no gradient).
     """
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, depths, width: int, height: int, stats: dict | None = None):
+    def forward(ctx, means2d, conics, opacities, colors, depths, width: int, height: int, stats: dict | None = None,
+                pixels: np.ndarray | None = None):
         dt = np.float64 if means2d.dtype == torch.float64 else np.float32
         packed = _pack(means2d, conics, opacities, colors, depths, dt)
         rows = np.arange(packed.shape[0], dtype=np.int64)
         binning = bin_gaussians(packed, rows, depths.detach().cpu().numpy().astype(np.float64), width, height)
         uv64 = means2d.detach().cpu().numpy().astype(np.float64)
-        out = rasterize_packed(packed, binning, uv64)
+        out = rasterize_packed(packed, binning, uv64, pixels=pixels)
         ctx.packed, ctx.binning, ctx.uv64 = packed, binning, uv64
         ctx.grad_dtype = means2d.dtype
         ctx.final_T, ctx.last = out["T"].copy(), out["last"]  # the returned T may be modified by the caller
@@ -308,7 +329,7 @@ class RasterizeGaussians(torch.autograd.Function):
         gt = torch.from_numpy(grad).to(ctx.grad_dtype)
         if ctx.timings is not None:
             ctx.timings["raster_backward"] = ctx.timings.get("raster_backward", 0.0) + time.perf_counter() - t0
-        return gt[:, 0:2], gt[:, 2:5], gt[:, 5], gt[:, 6:9], gt[:, 9], None, None, None
+        return gt[:, 0:2], gt[:, 2:5], gt[:, 5], gt[:, 6:9], gt[:, 9], None, None, None, None
 
 
 def project_numba(
@@ -393,6 +414,7 @@ def render(
     projection: Literal["auto", "numba", "torch"] = "auto",
     tiles: np.ndarray | None = None,
     min_transmittance: float = TRANSMITTANCE_THRESHOLD,
+    pixels: np.ndarray | Tensor | None = None,
 ) -> RenderOutput:
     """Render a fisheye image of ``gaussians`` from ``T_world_cam`` (CPU, numba).
 
@@ -423,6 +445,10 @@ def render(
             transmittance below this (default 1e-4, as INRIA 3DGS and gsplat). A larger value skips the faint
             tail of each pixel (fewer evaluations; the skipped Gaussians' colour is missing, at most this
             fraction of the pixel). Inference only (the default when gradients are needed).
+        pixels: ``[H, W]`` bool: composite only these pixels (e.g. a loss mask); every other pixel is the
+            background (``alpha`` 0) and passes no gradient. The pixels composited, and every gradient of a loss
+            that does not read the others (:func:`umi_aug.splat.losses.photometric_loss` with that mask), are
+            exactly the full render's; a 16x16 tile without such a pixel costs nothing in the rasteriser.
 
     Returns:
         :class:`RenderOutput`.
@@ -457,6 +483,7 @@ def render(
     if use_torch and t_min != TRANSMITTANCE_THRESHOLD:
         raise SplatError(f"render(min_transmittance={min_transmittance!r}) is inference only: the differentiable "
                          f"path stops at the default {TRANSMITTANCE_THRESHOLD}; call it without gradients")
+    active = None if pixels is None else active_pixels(pixels, H, W)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if use_torch:
@@ -465,7 +492,7 @@ def render(
         timings["project"] = time.perf_counter() - t0
         stats: dict[str, Any] = {"timings": timings}  # the backward adds timings["raster_backward"] (seconds)
         rgb_acc, depth_acc, T = RasterizeGaussians.apply(
-            proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, W, H, stats
+            proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, W, H, stats, active
         )
         timings["raster"] = time.perf_counter() - t0 - timings["project"]
         rgb, alpha, ray_depth = _compose(rgb_acc, depth_acc, T, bg)
@@ -480,7 +507,7 @@ def render(
             binning = restrict_binning(binning, tiles)
         t2 = time.perf_counter()
         timings["bin"] = t2 - t1
-        out = rasterize_packed(packed, binning, uv64, fused=True, min_transmittance=t_min)
+        out = rasterize_packed(packed, binning, uv64, fused=True, min_transmittance=t_min, pixels=active)
         timings["raster"] = time.perf_counter() - t2
         rgb, alpha, ray_depth = compose_background_numpy(out, bg)
         ids = torch.from_numpy(rows)

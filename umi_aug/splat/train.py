@@ -56,7 +56,8 @@ TIMING_KEYS = ("render", "loss", "backward", "step", "densify", "project", "rast
                "raster_backward")
 CHECKPOINT_VERSION = 1
 #: Config fields that may change between a checkpoint and a resumed run.
-RESUMABLE_CHANGES = frozenset({"iterations", "eval_every", "checkpoint_every", "sheet_views", "fast_projection"})
+RESUMABLE_CHANGES = frozenset({"iterations", "eval_every", "checkpoint_every", "sheet_views", "fast_projection",
+                               "loss_pixels_only"})
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,11 @@ class SplatTrainConfig:
             projection, the optimiser step and the densifier are per Gaussian and cost the same
             (docs/real_scale.md section 1b). Evaluation and outputs are always at full resolution.
             ``coarse_downscale = 1``: full resolution throughout.
+        loss_pixels_only: training steps and evaluations rasterise only the pixels of the view's loss mask
+            (``render(pixels=)``): the loss, every gradient and every metric are exactly those of rendering the whole
+            view (the masked loss composites the target outside the mask before anything reads it), while the
+            gripper, mirrors and the corners outside the image circle (43 % of a UMI policy frame) cost nothing
+            where they fill whole 16x16 tiles. False: every pixel is rendered (the reference; same results).
     """
 
     iterations: int = 3000
@@ -131,6 +137,7 @@ class SplatTrainConfig:
     fast_projection: bool = True
     coarse_downscale: int = 1
     coarse_fraction: float = 0.5
+    loss_pixels_only: bool = True
 
     def check(self) -> None:
         """Raise :class:`SplatError` naming the first invalid field."""
@@ -333,11 +340,13 @@ def _lrs(cfg: SplatTrainConfig, step: int, scale: float) -> dict[str, float]:
     }
 
 
-def _render(g: Gaussians, data: _Data, i: int, intr: FisheyeIntrinsics, cfg: SplatTrainConfig, deg: int):
+def _render(g: Gaussians, data: _Data, i: int, intr: FisheyeIntrinsics, cfg: SplatTrainConfig, deg: int,
+            loss_pixels: bool = False):
+    """View ``i`` rendered; ``loss_pixels``: only the pixels of its loss mask (when ``cfg.loss_pixels_only``)."""
     from umi_aug.splat.renderer import render  # lazy, start-up: numba, scipy
 
     return render(g, data.poses[i], intr, torch.tensor(cfg.background, dtype=torch.float32), deg,
-                  filter=cfg.filter)
+                  filter=cfg.filter, pixels=data.masks[i] if loss_pixels and cfg.loss_pixels_only else None)
 
 
 @torch.no_grad()
@@ -347,7 +356,7 @@ def _evaluate(g: Gaussians, data: _Data, idx: Sequence[int], intr, cfg, deg) -> 
         return float("nan"), float("nan")
     ps, ss = [], []
     for i in idx:
-        rgb = _render(g, data, i, intr, cfg, deg).rgb.clamp(0.0, 1.0)
+        rgb = _render(g, data, i, intr, cfg, deg, loss_pixels=True).rgb.clamp(0.0, 1.0)
         ps.append(masked_psnr(rgb, data.images[i], data.masks[i]))
         ss.append(float(masked_ssim(rgb, data.images[i], data.masks[i])))
     return float(np.mean(ps)), float(np.mean(ss))
@@ -511,7 +520,8 @@ def train_splat(
 
             d, d_intr = (coarse, coarse_intr) if it <= cfg.coarse_stop_step else (data, intr)
             r = render(g, d.poses[i], d_intr, bg, deg_at(it), filter=cfg.filter,
-                       projection="auto" if cfg.fast_projection else "torch")
+                       projection="auto" if cfg.fast_projection else "torch",
+                       pixels=d.masks[i] if cfg.loss_pixels_only else None)
             t1 = time.perf_counter()
             loss, _parts = photometric_loss(r.rgb, d.images[i], d.masks[i], cfg.ssim_weight,
                                             target_stats=d.ssim_stats(i) if cfg.ssim_weight > 0 else None)
