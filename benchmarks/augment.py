@@ -61,9 +61,9 @@ def _dataset_rate(session: Path, assets, workers: int, n: int) -> float:
 #: reference (no fast path, libjxl's default effort 7: the export before issue #17).
 VARIANTS: dict[str, tuple[tuple[str, ...], int | None]] = {
     "reference": ((), None), "overlay_cache": (("overlay_cache",), None), "encode_ahead": (("encode_ahead",), None),
-    "obstacle_tiles": (("obstacle_tiles",), None),
-    "all fast paths": (("overlay_cache", "encode_ahead", "obstacle_tiles"), None),
-    "all + effort 4 (default)": (("overlay_cache", "encode_ahead", "obstacle_tiles"), 4)}
+    "obstacle_tiles": (("obstacle_tiles",), None), "overlay_pixels": (("overlay_pixels",), None),
+    "all fast paths": (("overlay_cache", "encode_ahead", "obstacle_tiles", "overlay_pixels"), None),
+    "all + effort 4 (default)": (("overlay_cache", "encode_ahead", "obstacle_tiles", "overlay_pixels"), 4)}
 #: JPEG-XL settings compared with UMI's (level 99; name -> imagecodecs.jpegxl_encode keywords).
 CODECS: dict[str, dict] = {"L99 (UMI)": {"level": 99}, "L99 effort 4": {"level": 99, "effort": 4},
                            "L99 effort 2": {"level": 99, "effort": 2}, "L99 effort 1": {"level": 99, "effort": 1},

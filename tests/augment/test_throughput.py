@@ -251,3 +251,19 @@ def test_export_with_tasks_encoding_is_byte_identical_to_the_reference(aug_sessi
     a, b = _stored_chunks(tmp_path / "ref.zarr"), _stored_chunks(tmp_path / "tasks.zarr")
     assert a.keys() == b.keys()
     assert [k for k in a if a[k] != b[k]] == []
+
+
+def test_new_frames_skip_what_the_overlay_covers_and_equal_the_reference(aug_assets):
+    """``overlay_pixels``: the pixels the gripper overlay covers completely are not rendered; the frames are the
+    reference's, byte for byte (free-space episode: every frame before the splice is new)."""
+    from umi_aug.augment.plan import plan_episode
+    from umi_aug.augment.render import render_episode_frames
+
+    keep = aug_assets.rendered_pixels
+    assert keep.dtype == bool and np.array_equal(keep, aug_assets.overlay_alpha < 1.0)
+    assert 0 < keep.mean() < 1  # the overlay covers part of the frame, the render shows the rest
+    planned = plan_episode(aug_assets, aug_assets.augmentable[0], 1, "freespace")
+    idx = np.arange(min(planned.splice_index, 6))
+    fast = render_episode_frames(aug_assets, planned, idx)
+    ref = render_episode_frames(aug_assets, planned, idx, overlay_pixels=False)
+    assert fast.shape == ref.shape and np.array_equal(fast, ref)

@@ -258,3 +258,23 @@ def test_cache_keys_deterministic_and_discriminating(rng):
     assert c1.key("s", T, intr, [ob]) == render_cache_key("s", T, intr, [ob], None, {"filter": "mip"})
     with pytest.raises(SplatError, match="render_kwargs"):
         RenderCache(render_kwargs={"projection": "torch"})
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_composed_pixels_equal_the_full_composed_render(rng, dtype):
+    """``render_composed(pixels=)`` (the export leaves out what the gripper overlay covers): the kept pixels bit for
+    bit, the rest the background; obstacles past 90 degrees and behind the camera included."""
+    from tests.splat.test_render_pixels import _check, _masks
+
+    intr = random_kb_intrinsics(rng, 64, 48)
+    T = random_pose(rng)
+    scene = random_gaussians(150, rng, intr, T, theta_max=2.0, dtype=dtype)
+    obstacles = [_obstacle(rng, intr, T, dtype=dtype), _obstacle(rng, intr, T, n=10, theta_range=(2.2, 2.0),
+                                                                 dtype=dtype)]
+    bg = rng.uniform(0, 1, 3)
+    full = render_composed(scene, obstacles, T, intr, bg)
+    for keep in _masks(rng, 48, 64):
+        part = render_composed(scene, obstacles, T, intr, bg, pixels=keep)
+        _check(full, part, keep, bg)
+    with pytest.raises(SplatError, match=r"pixels: expected a bool mask of shape \(48, 64\)"):
+        render_composed(scene, obstacles, T, intr, bg, pixels=np.ones((64, 48), bool))

@@ -63,7 +63,7 @@ __all__ = ["FAST_PATHS", "export", "export_jobs"]
 log = logging.getLogger(__name__)
 
 #: Speed-ups of :func:`export` (issue #17), each with its reference path kept (``fast_paths=()``).
-FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead", "obstacle_tiles", "encode_in_task")
+FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead", "obstacle_tiles", "encode_in_task", "overlay_pixels")
 
 
 def export_jobs(assets: SessionAssets) -> list[tuple[int, str, int]]:
@@ -105,7 +105,7 @@ class _JobResult:
 def _job_task(args) -> _JobResult:
     """One export job (top-level, picklable: runs in this process or on an executor's worker): plan (or load the
     cached plan), then render the new frames — and the replayed ones too when they cannot be copied raw."""
-    assets, j, job, key, raw_ok, overlay_cache, obstacle_tiles, spec = args
+    assets, j, job, key, raw_ok, overlay_cache, obstacle_tiles, overlay_pixels, spec = args
     d, m, a = job
     t_scene = time.perf_counter()
     assets = assets.for_demo(d)  # the demo's scene (built by its scene task before this job, else here)
@@ -130,7 +130,7 @@ def _job_task(args) -> _JobResult:
         copy_tail = planned.obstacle is None and raw_ok
         n = planned.splice_index if copy_tail else planned.n_frames
         frames = render_episode_frames(assets, planned, range(n), cache_originals=overlay_cache,
-                                       obstacle_tiles=obstacle_tiles)
+                                       obstacle_tiles=obstacle_tiles, overlay_pixels=overlay_pixels)
     t2 = time.perf_counter()
     if spec is not None and frames is not None:  # encode_in_task: the chunks travel back, not the frames
         return _JobResult(j, planned, attempts, reasons, None, copy_tail, t1 - t0, t2 - t1, scene_s,
@@ -209,7 +209,9 @@ def export(session_dir: str | os.PathLike, out_path: str | os.PathLike, cfg: Aug
             an obstacle episode the scene's depth (for the obstacle's depth test) is rasterised only in the
             tiles where the obstacle shows; ``"encode_in_task"`` — with more than one worker, each episode task
             encodes its own new frames (:func:`umi_aug.augment.encode.encode_with_spec`) and sends back the chunks,
-            so the driver only stores them (it no longer encodes every worker's frames).
+            so the driver only stores them (it no longer encodes every worker's frames); ``"overlay_pixels"`` —
+            the new frames' pixels the gripper overlay covers completely (gripper, fingers, and the mirrors when
+            they come from the source frame) are not rasterised.
         source: the :class:`~umi_aug.augment.sources.InputSource` of ``session_dir``, opened by the caller
             (e.g. the square benchmark's ``SquareSource`` with its settings); default:
             ``open_source(session_dir, dataset_input)``.
@@ -401,11 +403,12 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
         bar = tqdm(total=len(jobs), initial=start, desc="augment", unit="episode", disable=not progress,
                    dynamic_ncols=True)
         overlay_cache, obstacle_tiles = "overlay_cache" in fast, "obstacle_tiles" in fast
+        overlay_pixels = "overlay_pixels" in fast
         # encode_in_task: with several workers the tasks encode (one process renders and encodes alike: it keeps
         # encode_ahead's threads, which overlap the next render)
         spec = (chunk_spec(buf[IMAGE_KEY]) if "encode_in_task" in fast and cfg.workers > 1 and IMAGE_KEY in buf
                 and can_encode_ahead(buf[IMAGE_KEY]) else None)
-        tasks = ((assets, j, jobs[j], key, raw_ok, overlay_cache, obstacle_tiles, spec)
+        tasks = ((assets, j, jobs[j], key, raw_ok, overlay_cache, obstacle_tiles, overlay_pixels, spec)
                  for j in range(start, len(jobs)))
         # encode_ahead: a finished episode's new frames are encoded on threads while the next one renders; it is
         # committed (records, data, meta/episode_ends, progress attribute — in the reference's order) when the next

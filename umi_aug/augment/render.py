@@ -54,14 +54,16 @@ def placed_obstacles(assets: SessionAssets, planned: PlannedEpisode) -> list:
     return [PlacedGaussians(gs.to(dtype=torch.float32), np.asarray(ob.T_world_obj, np.float64), key)]
 
 
-def render_view(assets: SessionAssets, T_world_cam: np.ndarray, obstacles: Sequence = ()) -> np.ndarray:
-    """The 3DGS scene (+ placed obstacles) at the policy intrinsics → ``[S, S, 3]`` uint8 (no overlay)."""
+def render_view(assets: SessionAssets, T_world_cam: np.ndarray, obstacles: Sequence = (),
+                pixels: np.ndarray | None = None) -> np.ndarray:
+    """The 3DGS scene (+ placed obstacles) at the policy intrinsics → ``[S, S, 3]`` uint8 (no overlay);
+    ``pixels`` ``[S, S]`` bool: only these are rendered, the others are black (None: all)."""
     from umi_aug.splat.compose import render_composed, rgb_to_uint8  # lazy, start-up: torch
 
     cfg = assets.cfg
     out = render_composed(assets.gaussians, list(obstacles), np.asarray(T_world_cam, np.float64),
                           assets.policy_intrinsics, background=(0.0, 0.0, 0.0), near=cfg.render_near_m,
-                          far=cfg.render_far_m, min_transmittance=cfg.render_min_transmittance)
+                          far=cfg.render_far_m, min_transmittance=cfg.render_min_transmittance, pixels=pixels)
     return rgb_to_uint8(out.rgb)
 
 
@@ -138,7 +140,8 @@ def overlay_originals(assets: SessionAssets, demo_index: int, src: np.ndarray) -
 
 
 def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_indices: Sequence[int], *,
-                          cache_originals: bool = True, obstacle_tiles: bool = True) -> np.ndarray:
+                          cache_originals: bool = True, obstacle_tiles: bool = True,
+                          overlay_pixels: bool = True) -> np.ndarray:
     """Policy frames ``[K, S, S, 3]`` uint8 of ``planned`` at ``frame_indices`` (only those are made).
 
     Frames ``k < splice_index``: 3DGS render (+ obstacle) with the gripper overlay. Frames ``k >= splice_index``:
@@ -147,6 +150,9 @@ def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_
     :func:`overlay_originals` (decoded once per demo); False: decoded for this call (the reference path).
     ``obstacle_tiles``: on replayed frames of an obstacle episode the scene's depth is rendered only where the
     obstacle shows (:func:`_obstacle_over_original`); False: the whole frame (the reference path).
+    ``overlay_pixels``: the new frames' pixels that the gripper overlay covers completely (alpha 1:
+    :meth:`SessionAssets.rendered_pixels`) are not rasterised; False: every pixel (the reference path). Same
+    frames either way.
 
     Raises:
         AugmentError: an index outside ``[0, n_frames)``.
@@ -168,7 +174,8 @@ def render_episode_frames(assets: SessionAssets, planned: PlannedEpisode, frame_
         src = overlay_sources(assets, planned, k_new)
         originals = (overlay_originals(assets, planned.demo_index, src) if cache_originals
                      else assets.original_frames(planned.demo_index, src))
-        rendered = np.stack([render_view(assets, ep.T_world_cam[k], obstacles) for k in k_new])
+        pixels = assets.rendered_pixels if overlay_pixels else None
+        rendered = np.stack([render_view(assets, ep.T_world_cam[k], obstacles, pixels) for k in k_new])
         out[new] = composite_overlay(rendered, originals, alpha)
     if (~new).any():
         k_old = idx[~new]

@@ -126,6 +126,12 @@ class SessionAssets:
         return self.memoized("overlay_alpha", lambda: overlay_alpha(self.gripper_mask, self.cfg.overlay.feather_px))
 
     @property
+    def rendered_pixels(self) -> np.ndarray:
+        """[S, S] bool: the pixels of a new frame that show the render (overlay alpha < 1); the others are the
+        original frame's after :func:`~umi_aug.augment.overlay.composite_overlay`, so they need no render."""
+        return self.memoized("rendered_pixels", lambda: np.ascontiguousarray(self.overlay_alpha < 1.0))
+
+    @property
     def sdf(self):
         """The reconstructed scene SDF (:class:`umi_aug.recon.VoxelSDF`)."""
         return self.memoized("sdf", lambda: VoxelSDF.load(self.paths["sdf"]))

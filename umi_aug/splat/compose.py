@@ -203,6 +203,7 @@ def render_composed(
     intr: FisheyeIntrinsics,
     background: torch.Tensor | np.ndarray | Sequence[float] | None = None,  # [3] or [H, W, 3]
     sh_degree: int | None = None,
+    pixels: np.ndarray | None = None,
     **render_kwargs: Any,
 ):
     """Render ``scene`` plus rigidly placed obstacle sets from ``T_world_cam`` (CPU, numba, no gradients).
@@ -220,6 +221,8 @@ def render_composed(
         intr: KB fisheye intrinsics (image size included).
         background: RGB behind everything (default black).
         sh_degree: SH degree to evaluate (default: each set's own; capped at each set's degree).
+        pixels: ``[H, W]`` bool: composite only these pixels, the others are the background (``alpha`` 0), as
+            :func:`umi_aug.splat.render`'s ``pixels`` (None: all).
         **render_kwargs: ``filter``, ``near``, ``far``, ``min_transmittance`` as in :func:`umi_aug.splat.render`.
 
     Returns:
@@ -228,8 +231,8 @@ def render_composed(
         size and visible count.
     """
     # lazy, start-up: numba, scipy
-    from umi_aug.splat.renderer import (RenderOutput, _background, bin_gaussians, compose_background_numpy,
-                                        project_numba, rasterize_packed)
+    from umi_aug.splat.renderer import (RenderOutput, _background, active_pixels, bin_gaussians,
+                                        compose_background_numpy, project_numba, rasterize_packed)
 
     if not isinstance(scene, Gaussians):
         raise SplatError(f"render_composed expects the scene as Gaussians, got {type(scene).__name__}")
@@ -247,6 +250,7 @@ def render_composed(
     H, W = intr.height, intr.width
     bg = _background(background, dtype, H, W)
     T_wc = _as_pose64(T_world_cam, "T_world_cam")
+    active = None if pixels is None else active_pixels(pixels, H, W)
     t0 = time.perf_counter()
 
     parts: list[tuple[str, Gaussians, np.ndarray]] = [("scene", scene, T_wc)]
@@ -276,7 +280,7 @@ def render_composed(
     t1 = time.perf_counter()
     binning = bin_gaussians(packed, np.arange(V, dtype=np.int64), depth64, W, H, counts)
     t2 = time.perf_counter()
-    out = rasterize_packed(packed, binning, uv64, fused=True, min_transmittance=t_min)
+    out = rasterize_packed(packed, binning, uv64, fused=True, min_transmittance=t_min, pixels=active)
     t3 = time.perf_counter()
     rgb, alpha, ray_depth = compose_background_numpy(out, bg)
     meta = {
