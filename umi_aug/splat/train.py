@@ -340,13 +340,12 @@ def _lrs(cfg: SplatTrainConfig, step: int, scale: float) -> dict[str, float]:
     }
 
 
-def _render(g: Gaussians, data: _Data, i: int, intr: FisheyeIntrinsics, cfg: SplatTrainConfig, deg: int,
-            loss_pixels: bool = False):
-    """View ``i`` rendered; ``loss_pixels``: only the pixels of its loss mask (when ``cfg.loss_pixels_only``)."""
+def _render(g: Gaussians, data: _Data, i: int, intr: FisheyeIntrinsics, cfg: SplatTrainConfig, deg: int):
+    """View ``i`` rendered for the masked metrics (only its loss mask's pixels when ``cfg.loss_pixels_only``)."""
     from umi_aug.splat.renderer import render  # lazy, start-up: numba, scipy
 
     return render(g, data.poses[i], intr, torch.tensor(cfg.background, dtype=torch.float32), deg,
-                  filter=cfg.filter, pixels=data.masks[i] if loss_pixels and cfg.loss_pixels_only else None)
+                  filter=cfg.filter, pixels=data.masks[i] if cfg.loss_pixels_only else None)
 
 
 @torch.no_grad()
@@ -356,7 +355,7 @@ def _evaluate(g: Gaussians, data: _Data, idx: Sequence[int], intr, cfg, deg) -> 
         return float("nan"), float("nan")
     ps, ss = [], []
     for i in idx:
-        rgb = _render(g, data, i, intr, cfg, deg, loss_pixels=True).rgb.clamp(0.0, 1.0)
+        rgb = _render(g, data, i, intr, cfg, deg).rgb.clamp(0.0, 1.0)
         ps.append(masked_psnr(rgb, data.images[i], data.masks[i]))
         ss.append(float(masked_ssim(rgb, data.images[i], data.masks[i])))
     return float(np.mean(ps)), float(np.mean(ss))
