@@ -33,6 +33,15 @@ def test_recipes_load_and_bad_keys_are_named(tmp_path):
     reg = st.load_recipe(ROOT / "configs" / "square_study" / "cpu_regression.yaml")  # issue #29 part 4
     assert st.expected_rollouts(reg) == 500 and st.expected_rollouts(reg, handover=True) == 100
     assert reg.eval_handover and not cpu.eval_handover and not paper.eval_handover
+    # every recipe writes its own report; docs/square_study.md is the hand-written overview no recipe overwrites
+    shipped = [st.load_recipe(p) for p in sorted((ROOT / "configs" / "square_study").glob("*.yaml"))]
+    assert len({r.report_md for r in shipped}) == len(shipped) >= 3
+    assert all(r.report_md == f"docs/square_study_{r.name}.md" for r in shipped)
+    assert all(r.report_png == f"docs/square_study_{r.name}.png" for r in shipped)
+    unset = st.load_recipe(ROOT / "configs" / "square_study" / "cpu.yaml", ["name=abc", "report_md=''",
+                                                                            "report_png=''"])
+    assert (unset.report_md, unset.report_png) == ("docs/square_study_abc.md", "docs/square_study_abc.png")
+    assert st.StudyConfig(name="x").report_md == "docs/square_study_x.md"
     with pytest.raises(st.StudyError, match="no_such_key"):
         _cfg(tmp_path, "no_such_key=3")
     with pytest.raises(st.StudyError, match="'magic'"):

@@ -37,5 +37,5 @@ Evaluation and study
   - :mod:`~umi_aug.square.eval` — the task of the harness (``eval/eval_sim.py``): environment, sub-goals, contacts.
   - :mod:`~umi_aug.square.oracle` — the replay oracle of the train/eval contract (``eval/square_oracle.py``).
   - :mod:`~umi_aug.square.study` / :mod:`~umi_aug.square.report` — the study (``eval/square_study.py``) and its
-    report.
+    report; :mod:`~umi_aug.square.claims` — the paper's claims against the study's record, each with a verdict.
 """

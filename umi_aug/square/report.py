@@ -1,8 +1,9 @@
-"""The square study's report: ``docs/square_study.md`` (tables) and ``docs/square_study.png`` (figure).
+"""The square study's report: ``docs/square_study_<recipe>.md`` (tables) and ``docs/square_study_<recipe>.png``
+(figure).
 
 Everything is read from the study's record (``record_dir``: evaluation ``summary.json`` / ``results.jsonl``, export
 summaries, ``study_state.json`` wall times, rendering fidelity); cells not evaluated yet are listed as such, never
-filled in.
+filled in. The paper's claims and their verdicts: :mod:`umi_aug.square.claims`.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 from umi_aug.eval.results import ResultsLog
 from umi_aug.eval.stats import mcnemar_exact_p, median_interval, paired_bootstrap_interval, wilson_interval
 from umi_aug.io_utils import atomic_path, atomic_write_text
+from umi_aug.square.claims import claims_section
 from umi_aug.square.study import (StudyError, eval_command, export_path, handover_configs, load_state,
                                   record_eval_dir, record_export_summary, study_cells, train_command, variant_path)
 
@@ -280,14 +282,26 @@ def write_report(cfg, cells: list[dict[str, Any]], state: dict[str, Any]) -> dic
                                                       "status_counts", "timings_s")} for k, v in exports.items()},
               "steps": state.get("steps", {})}
     cfg.record.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(cfg.record / "report.json", json.dumps(report, indent=1) + "\n")
     sheet = write_frames_sheet(cfg)
     if sheet is None and frames_sheet_path(cfg).exists():
         sheet = str(frames_sheet_path(cfg))  # made on a machine that had the datasets
     report["frames_sheet"] = sheet
-    _write_md(cfg, cells, metrics, fid, report["exports"], state, report["frames_sheet"], handover, lent_steps(cfg))
+    lent = lent_steps(cfg)
+    claims_lines, claims = claims_section(cfg, machine=lambda step: _machine(lent, step))
+    report["claims"] = [{**asdict(r["claim"]), **{k: _finite_or_none(v) for k, v in r.items() if k != "claim"}}
+                        for r in claims]
+    atomic_write_text(cfg.record / "report.json", json.dumps(report, indent=1) + "\n")
+    _write_md(cfg, cells, metrics, fid, report["exports"], state, report["frames_sheet"], handover, lent,
+              claims_lines)
     _write_png(cfg, cells, metrics, handover)
     return report
+
+
+def _finite_or_none(v: Any) -> Any:
+    """JSON has no NaN: a float (or a list of floats) that is not finite becomes null."""
+    if isinstance(v, list):
+        return [_finite_or_none(x) for x in v]
+    return None if isinstance(v, float) and not np.isfinite(v) else v
 
 
 def _recipe_dict(cfg) -> dict[str, Any]:
@@ -327,7 +341,8 @@ def _handover_cell(cfg, m: dict[str, Any] | None) -> str:
 
 
 def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None,
-              handover: dict[str, Any] | None = None, lent: dict[str, dict[str, Any]] | None = None) -> None:
+              handover: dict[str, Any] | None = None, lent: dict[str, dict[str, Any]] | None = None,
+              claims_lines: list[str] | None = None) -> None:
     handover, lent = handover or {}, lent or {}
     hcol = " (c) learned approach + scripted grasp |" if cfg.eval_handover else ""
     L = [f"# Square study — recipe `{cfg.name}`", "",
@@ -369,6 +384,7 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
               "| other variant | demos | outcome | paired configurations | ours vs other | only ours / only other | "
               "McNemar p | Δ rate, pp [95 %] |", "|---|---:|---|---:|---|---|---:|---|", *ours_rows,
               *_cross_machine_note(cfg, ours_rows)]
+    L += claims_lines or []
     paired = _paired_rows(cfg, cells, lent)
     if paired:
         L += ["", "## Against `none`, configuration by configuration", "",

@@ -103,9 +103,14 @@ class StudyConfig:
     handover_configs: str = ""
     budget_min: float = 0.0
     record_dir: str = ""
-    report_md: str = "docs/square_study.md"
-    report_png: str = "docs/square_study.png"
+    report_md: str = ""  # "": docs/square_study_<name>.md
+    report_png: str = ""  # "": docs/square_study_<name>.png
     python: str = sys.executable
+
+    def __post_init__(self) -> None:
+        # docs/square_study.md is the hand-written overview of every recipe's report: no recipe writes over it
+        self.report_md = self.report_md or f"docs/square_study_{self.name}.md"
+        self.report_png = self.report_png or f"docs/square_study_{self.name}.png"
 
     @property
     def out(self) -> Path:
