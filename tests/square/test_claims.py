@@ -125,3 +125,21 @@ def test_the_report_has_the_claims_section_and_json(tmp_path, rng):
     assert [c["paper_pp"] for c in rep["claims"]] == [c.paper_pp for c in PAPER_CLAIMS]
     assert rep["claims"][0]["better"] == "ours" and rep["claims"][0]["sizes"] == "mean"
     assert rep["claims"][2]["diff_pp"] is None and rep["claims"][2]["ci95_pp"] == [None, None]  # NaN -> null
+
+
+def test_the_summary_page_states_what_the_record_says():
+    """docs/square_study.md is written by hand: each claim's row there must carry the number and the verdict that
+    the committed record of the running study gives today (regenerate the row when a cell lands)."""
+    cfg = st.load_recipe(ROOT / "configs" / "square_study" / "cpu_regression.yaml",
+                         [f"record_dir={ROOT / 'docs' / 'square_study_cpu_regression'}"])
+    page = (ROOT / "docs" / "square_study.md").read_text().replace("−", "-").splitlines()
+    for c in PAPER_CLAIMS:
+        r = claim_result(cfg, c)
+        rows = [line for line in page if line.startswith(f"| `{c.better}` - `{c.worse}`")
+                and f"| {c.paper_pp:+.0f} |" in line]
+        assert len(rows) == 1, (c, rows)
+        want = r["verdict"]
+        assert f"| **{want}** |" in rows[0] or f"| {want} |" in rows[0], (want, rows[0])
+        if r["sizes_used"]:
+            assert f"{r['diff_pp']:+.1f} [{r['ci95_pp'][0]:+.1f}, {r['ci95_pp'][1]:+.1f}]" in rows[0], rows[0]
+            assert f"{r['better_successes']} vs {r['worse_successes']}" in rows[0], rows[0]
