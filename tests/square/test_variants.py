@@ -331,7 +331,19 @@ def test_frames_sheet_pairs_the_right_frames(fake_export, tmp_path):
                       render_new=None if v in ("ours", "action_only") else
                       (lambda e, info, c=const[v]: np.full((info.get("n_new", len(info["T_world_cam"])), S, S, 3), c,
                                                            np.uint8)))
+        if v == "ours":
+            assert frames_sheet_panels(cfg) is None  # ours without its oracle: nothing to compare
+        if v == "gt_render":  # the later variants' datasets are not there yet: their panels are left out
+            early = frames_sheet_panels(cfg)
+            assert len(early) == 3 and all(len(row) == 2 * 3 for row in early)
+            assert {p["title"].split(": ")[1] for row in early for p in row} == {"ours", "gt_render", "|ours-gt| x3"}
     panels = frames_sheet_panels(cfg)
+    assert [len(row) for row in panels[:3]] == [2 * 4] * 3
+    for row, row_early in zip(panels[:3], early):  # the same episodes and frames, with action_only added
+        kept = [p for p in row if not p["title"].endswith("action_only")]
+        assert [p["title"] for p in kept] == [p["title"] for p in row_early]
+        for p, q in zip(kept, row_early):
+            np.testing.assert_array_equal(p["image"], q["image"])
     assert len(panels) == 4  # 3 demos with augmented episodes + the SPARTN row
     for row in panels[:3]:
         gt = [p for p in row if p["title"].endswith("gt_render")]

@@ -592,7 +592,8 @@ def frames_sheet_panels(cfg, n_episodes: int = 4) -> list[list[dict[str, Any]]] 
     """The frames of :func:`write_frames_sheet`, row by row: each panel ``{"image", "title", ...}``. Augmented rows
     carry ``key`` (source demo, aug id) and ``t``; the SPARTN row pairs each perturbed frame (``kind`` "perturbed",
     with ``demo``, ``t``, ``episode``) with the source demo's frame ``t`` it perturbs (``kind`` "original"). None
-    when the largest data size's ours / gt_render / action_only / spartn datasets are not all there."""
+    when the largest data size's ours or gt_render dataset is not there; the action_only panels and the SPARTN row
+    are left out while their datasets are not there yet (a study makes the variants one after another)."""
     # lazy, start-up: cv2, scipy, zarr
     from umi_aug.augment.export_store import read_episode_records
     from umi_aug.data import ReplayBuffer
@@ -600,8 +601,9 @@ def frames_sheet_panels(cfg, n_episodes: int = 4) -> list[list[dict[str, Any]]] 
 
     big = max(cfg.sizes)
     paths = {v: variant_path(cfg, {"name": f"{v}_n{big}"}) for v in ("ours", "gt_render", "action_only", "spartn")}
-    if not all(p.exists() for p in paths.values()):
+    if not (paths["ours"].exists() and paths["gt_render"].exists()):
         return None
+    paths = {v: p for v, p in paths.items() if p.exists()}
     recs = {v: read_episode_records(p) for v, p in paths.items()}
     bufs = {v: ReplayBuffer.open(p) for v, p in paths.items()}
     try:
@@ -610,7 +612,8 @@ def frames_sheet_panels(cfg, n_episodes: int = 4) -> list[list[dict[str, Any]]] 
         gt = recs["gt_render"]
         splice = {(int(gt["aug_source_episode"][e]), int(gt["aug_id"][e])): int(gt["aug_splice_index"][e])
                   for e in range(len(gt["aug_id"]))}
-        shared = sorted(k for k in rows["gt_render"] if k[1] >= 0 and k in rows["ours"] and k in rows["action_only"])
+        shown = [v for v in ("ours", "gt_render", "action_only") if v in paths]
+        shared = sorted(k for k in rows["gt_render"] if k[1] >= 0 and all(k in rows[v] for v in shown))
         by_demo: dict[int, tuple[int, int]] = {}
         for k in shared:
             by_demo.setdefault(k[0], k)
@@ -619,11 +622,16 @@ def frames_sheet_panels(cfg, n_episodes: int = 4) -> list[list[dict[str, Any]]] 
         for k in picks:
             row = []
             for t in (0, max(1, splice[k] // 2)):
-                a, g, o = (img(v, rows[v][k][t]) for v in ("ours", "gt_render", "action_only"))
-                diff = np.clip(3.0 * np.abs(a.astype(np.float32) - g.astype(np.float32)), 0, 255).astype(np.uint8)
-                for im, name in ((a, "ours"), (g, "gt_render"), (diff, "|ours-gt| x3"), (o, "action_only")):
-                    row.append({"image": im, "title": f"demo {k[0]} aug {k[1]} t={t}: {name}", "key": k, "t": t})
+                im = {v: img(v, rows[v][k][t]) for v in shown}
+                a, g = im["ours"].astype(np.float32), im["gt_render"].astype(np.float32)
+                im["|ours-gt| x3"] = np.clip(3.0 * np.abs(a - g), 0, 255).astype(np.uint8)
+                for name in ("ours", "gt_render", "|ours-gt| x3", "action_only"):
+                    if name in im:
+                        row.append({"image": im[name], "title": f"demo {k[0]} aug {k[1]} t={t}: {name}", "key": k,
+                                    "t": t})
             panels.append(row)
+        if "spartn" not in paths:
+            return panels
         # SPARTN: short episode i of a demo perturbs demo frame t = To-1 + (i // per_step)*stride (its frame To-1)
         sp = dict(bufs["spartn"].root.attrs.get(VARIANT_ATTR, {})).get("spartn") or {}
         To, stride, per = int(sp.get("obs_horizon", 2)), int(sp.get("stride", 2)), int(sp.get("per_step", 1))
