@@ -2,8 +2,8 @@
 
 The paper (``../shared/paper/1001_demos.tex`` §4.1–4.2, Fig. 3b) states its simulation results as differences of
 task success "in %" between variants, averaged over its data sizes or for its low- / high-data regime. They are
-read here as **percentage points of the success rate** (the paper does not say absolute or relative; at the base
-rates of its figure a relative reading of "+56 %" would be a small change, the absolute one is what its bars show).
+read here as **percentage points of the success rate** (the paper does not say whether they are absolute or
+relative; the absolute reading is the one a reader of a success-rate bar chart takes, and the one tested here).
 
 For each claim the study's number is the same difference of success rates on the configurations both cells
 evaluated (every cell of a study is evaluated on the same ones), with a paired percentile-bootstrap 95 % interval:
@@ -110,15 +110,15 @@ def claim_result(cfg, claim: PaperClaim, n_boot: int = 10000, seed: int = 0,
     ``missing`` (cells of the claim's sizes not evaluated yet), ``n`` (configurations evaluated by every cell used),
     ``better_successes`` / ``worse_successes`` (success counts summed over the sizes used), ``diff_pp`` and
     ``ci95_pp`` (mean over the sizes used of ``better`` − ``worse``, percentage points; NaN when nothing is
-    measured), ``verdict``
-    (:func:`verdict`; prefixed ``provisional:`` when a size is missing) and ``cross_machine`` (a pair was evaluated
-    on two different machines: ``machine(step)`` names where ``eval/<cell>`` ran).
+    measured), ``verdict`` (:func:`verdict`; prefixed ``provisional:`` when a size is missing) and
+    ``cross_machine`` (a pair was evaluated on two different machines: ``machine(step)`` names where
+    ``eval/<cell>`` ran).
     """
     wanted = {"mean": list(cfg.sizes), "low": [min(cfg.sizes)], "high": [max(cfg.sizes)]}[claim.sizes]
     if claim.better not in cfg.variants or claim.worse not in cfg.variants:
         return {"claim": claim, "sizes_used": [], "missing": [], "n": 0, "better_successes": 0, "worse_successes": 0,
-                "diff_pp": float("nan"),
-                "ci95_pp": [float("nan"), float("nan")], "verdict": "not in this recipe", "cross_machine": False}
+                "diff_pp": float("nan"), "ci95_pp": [float("nan"), float("nan")], "verdict": "not in this recipe",
+                "cross_machine": False}
     pairs, missing = [], []
     for n in wanted:
         a, b = (_success(record_eval_dir(cfg, {"name": f"{v}_n{n}"})) for v in (claim.better, claim.worse))
