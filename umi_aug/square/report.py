@@ -483,7 +483,10 @@ def _write_png(cfg, cells, metrics, handover: dict[str, Any] | None = None) -> N
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # lazy, start-up: matplotlib
 
-    fig, axes = plt.subplots(1, 5, figsize=(25, 4.8))
+    # 2 x 3: (a) success | (c) learned approach + scripted grasp | (b) pre-grasp reached; closest approach |
+    # paired orientation difference | cone sweep. (c) has its own panel: at ~60 % it would flatten (a)'s few %.
+    fig, grid = plt.subplots(2, 3, figsize=(18, 9.5))
+    ax_success, ax_handover, ax_pregrasp, ax_mm, ax_deg, ax_sweep = grid.ravel()
     colour = {v: f"C{i}" for i, v in enumerate(cfg.variants)}  # one colour per variant in every panel
     for v in cfg.variants:  # the metric that separates policies that never succeed
         pts = sorted((c["n"], metrics[c["name"]]) for c in cells if c["variant"] == v and c["theta"] is None
@@ -491,28 +494,31 @@ def _write_png(cfg, cells, metrics, handover: dict[str, Any] | None = None) -> N
         if pts:
             med = np.array([m["closest_pregrasp_mm_median"] for _, m in pts])
             ci = np.array([m["closest_pregrasp_mm_ci95"] for _, m in pts])
-            axes[2].errorbar([n for n, _ in pts], med, yerr=[med - ci[:, 0], ci[:, 1] - med], marker="o", capsize=3,
+            ax_mm.errorbar([n for n, _ in pts], med, yerr=[med - ci[:, 0], ci[:, 1] - med], marker="o", capsize=3,
                              label=v, color=colour[v])
-    axes[2].set_xlabel("source demos")
-    axes[2].set_ylabel("mm")
-    axes[2].set_title("closest approach to pre-grasp (median, 95 %)")
-    _legend(axes[2], fontsize=8)
+    ax_mm.set_xlabel("source demos")
+    ax_mm.set_ylabel("mm")
+    ax_mm.set_title("closest approach to pre-grasp (median, 95 %)")
+    _legend(ax_mm, fontsize=8)
     for v in cfg.variants:  # what separates the cells: the paired orientation difference against none
         pts = [(c["n"], _paired_deg(cfg, c, c["n"])) for c in cells
                if c["variant"] == v and v != "none" and c["theta"] is None]
         pts = sorted((n, p) for n, p in pts if p is not None)
         if pts:
-            _errorbar_median(axes[3], [n for n, _ in pts], [p for _, p in pts], marker="o", label=v, color=colour[v])
-    axes[3].axhline(0.0, color="0.5", linewidth=0.8)
-    axes[3].set_xlabel("source demos")
-    axes[3].set_ylabel("°")
-    axes[3].set_title("Δ closest orientation vs none (paired, median, 95 %)")
-    _legend(axes[3], fontsize=8)
-    panels = [(axes[0], "success", "task success", metrics, "", "-"),
-              (axes[1], "pregrasp_reached", "pre-grasp reached", metrics, "", "-")]
-    if handover:  # metric (c) beside (a), dotted, in the variant's colour
-        panels.insert(1, (axes[0], "success", "task success", handover, " (c) + scripted grasp", ":"))
-    for ax, key, title, source, suffix, style in panels:
+            _errorbar_median(ax_deg, [n for n, _ in pts], [p for _, p in pts], marker="o", label=v, color=colour[v])
+    ax_deg.axhline(0.0, color="0.5", linewidth=0.8)
+    ax_deg.set_xlabel("source demos")
+    ax_deg.set_ylabel("°")
+    ax_deg.set_title("Δ closest orientation vs none (paired, median, 95 %)")
+    _legend(ax_deg, fontsize=8)
+    panels = [(ax_success, "success", "(a) task success", metrics),
+              (ax_pregrasp, "pregrasp_reached", "(b) pre-grasp reached", metrics)]
+    if handover:
+        panels.insert(1, (ax_handover, "success", "(c) learned approach + scripted grasp", handover))
+    else:
+        ax_handover.set_axis_off()
+        ax_handover.set_title("(c) learned approach + scripted grasp: not evaluated")
+    for ax, key, title, source in panels:
         for v in cfg.variants:
             xs, ys, lo, hi = [], [], [], []
             for c in cells:
@@ -525,13 +531,12 @@ def _write_png(cfg, cells, metrics, handover: dict[str, Any] | None = None) -> N
                 lo.append(100 * (r["rate"] - r["wilson95"][0]))
                 hi.append(100 * (r["wilson95"][1] - r["rate"]))
             if xs:
-                ax.errorbar(xs, ys, yerr=[lo, hi], marker="o", capsize=3, label=v + suffix, color=colour[v],
-                            linestyle=style)
+                ax.errorbar(xs, ys, yerr=[lo, hi], marker="o", capsize=3, label=v, color=colour[v])
         ax.set_xlabel("source demos")
         ax.set_ylabel("%")
         ax.set_title(f"{title} (Wilson 95 %)")
         _legend(ax, fontsize=8)
-    ax = axes[4]
+    ax = ax_sweep
     pts = []
     for c in cells:
         th = cfg.theta_deg if c["theta"] is None else c["theta"]
@@ -561,9 +566,9 @@ def _write_png(cfg, cells, metrics, handover: dict[str, Any] | None = None) -> N
         handles, labels = handles + h2, labels + l2
     if handles:  # below the panel: the lines span its whole height
         ax.legend(handles, labels, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3)
-    for a in axes[:4]:
+    for a in (ax_success, ax_handover, ax_pregrasp, ax_mm, ax_deg):
         a.set_xticks(sorted(cfg.sizes))
-    axes[4].set_xticks(sorted({float(t) for t in [*cfg.sweep_thetas, cfg.theta_deg]}))
+    ax_sweep.set_xticks(sorted({float(t) for t in [*cfg.sweep_thetas, cfg.theta_deg]}))
     fig.suptitle(f"square study — {cfg.name}")
     fig.tight_layout()
     p = Path(cfg.report_png)
