@@ -38,4 +38,5 @@ Evaluation and study
   - :mod:`~umi_aug.square.oracle` — the replay oracle of the train/eval contract (``eval/square_oracle.py``).
   - :mod:`~umi_aug.square.study` / :mod:`~umi_aug.square.report` — the study (``eval/square_study.py``) and its
     report; :mod:`~umi_aug.square.claims` — the paper's claims against the study's record, each with a verdict.
+  - :mod:`~umi_aug.square.start_angle` — a cell's outcomes by how far its starts are turned from the demos'.
 """

@@ -20,6 +20,7 @@ from umi_aug.eval.results import ResultsLog
 from umi_aug.eval.stats import mcnemar_exact_p, median_interval, paired_bootstrap_interval, wilson_interval
 from umi_aug.io_utils import atomic_path, atomic_write_text
 from umi_aug.square.claims import claims_section
+from umi_aug.square.start_angle import start_angle_section
 from umi_aug.square.study import (StudyError, eval_command, export_path, handover_configs, load_state,
                                   record_eval_dir, record_export_summary, study_cells, train_command, variant_path)
 
@@ -418,6 +419,8 @@ def _write_md(cfg, cells, metrics, fid, exports, state, sheet: str | None = None
             L.append(f"| {th:g} | {m['n']} | {_pct(m, 'success')} | {_pct(m, 'pregrasp_reached')} | "
                      f"{_pct(m, 'lifted')} | {_closest(m)} | {pv} |" + hc)
     L += _ends_section(cells, metrics)
+    L += start_angle_section([c for c in cells if c["theta"] is None],
+                             lambda c: _cell_rows(record_eval_dir(cfg, c)), cfg.eval_configs_file)
     L += ["", "## Rendering fidelity of `ours` against `gt_render` at the augmented poses", ""]
     if fid is None:
         L.append("Not computed yet (needs both datasets of the largest data size).")
