@@ -212,6 +212,47 @@ def test_spartn_labels_bring_the_perturbed_pose_back_onto_the_trajectory(fake_ex
     assert i == len(ends)
 
 
+def _episodes(path) -> list[dict[str, np.ndarray]]:
+    """Every episode of a variant dataset: its data arrays, its records and its sample step."""
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.data.schema import SAMPLE_STEP_KEY
+
+    d, ends, rec, _ = _read(path)
+    with ReplayBuffer.open(path) as b:
+        steps = (np.asarray(b.meta[SAMPLE_STEP_KEY][:]) if SAMPLE_STEP_KEY in set(b.meta.array_keys())
+                 else np.full(len(ends), -1))
+    starts = np.concatenate([[0], ends[:-1]])
+    return [{**{k: v[a:b] for k, v in d.items()}, **{f"rec/{k}": np.asarray(v[e]) for k, v in rec.items()},
+             "step": np.asarray(steps[e])} for e, (a, b) in enumerate(zip(starts, ends))]
+
+
+def test_ours_spartn_is_ours_plus_the_spartn_samples_byte_for_byte(fake_export, tmp_path):
+    from umi_aug.square.variants import SpartnConfig, write_variant
+
+    src, demos = fake_export
+    cfg = SpartnConfig(stride=2, per_step=2, seed=11)
+    render = lambda e, info: np.full((len(info["T_world_cam"]), S, S, 3), 70, np.uint8)  # noqa: E731
+    paths = {v: tmp_path / f"{v}.zarr.zip" for v in ("ours", "spartn", "ours_spartn")}
+    summ = {v: write_variant(v, src, p, 2, render_new=render if v != "ours" else None, spartn=cfg, progress=False)
+            for v, p in paths.items()}
+    eps = {v: _episodes(p) for v, p in paths.items()}
+    both = eps["ours_spartn"]
+    samples = [e for e in both if e["rec/aug_id"] == -2]
+    assert len(samples) > 0 and summ["ours_spartn"]["frames_new"] == summ["spartn"]["frames_new"] > 0
+    assert summ["ours_spartn"]["augmented"] == summ["ours"]["augmented"] + summ["spartn"]["augmented"]
+    for got, want in ((
+            [e for e in both if e["rec/aug_id"] != -2], eps["ours"]),
+            (samples, [e for e in eps["spartn"] if e["rec/aug_id"] == -2])):
+        assert len(got) == len(want)
+        for g, w in zip(got, want):
+            assert g.keys() == w.keys()
+            for k in g:
+                np.testing.assert_array_equal(g[k], w[k], err_msg=k)
+    assert all(e["step"] >= 0 for e in samples) and all(e["step"] == -1 for e in both if e["rec/aug_id"] != -2)
+    with pytest.raises(Exception, match="needs render_new"):
+        write_variant("ours_spartn", src, tmp_path / "x.zarr.zip", 2, progress=False)
+
+
 def test_spartn_window_of_the_policy_dataset_is_corrective(fake_export, tmp_path):
     """Through the training dataset itself: at the perturbed current step, target 0 is the perturbed pose and
     targets 1.. lie on the original trajectory (relative pose representation composed back)."""
@@ -293,6 +334,7 @@ def test_subset_of_a_variant_equals_the_variant_of_fewer_demos(fake_export, tmp_
     cfg = SpartnConfig(stride=4, seed=2)
     render = {"gt_render": lambda e, info: np.full((info["n_new"], S, S, 3), 90, np.uint8),
               "spartn": lambda e, info: np.full((len(info["T_world_cam"]), S, S, 3), 40, np.uint8),
+              "ours_spartn": lambda e, info: np.full((len(info["T_world_cam"]), S, S, 3), 45, np.uint8),
               "action_only": None}
     for v, fn in render.items():
         big, direct, cut = (tmp_path / f"{v}_{k}.zarr.zip" for k in ("n3", "n2", "cut2"))

@@ -17,6 +17,9 @@ source demos, trajectories and bytes wherever they are meant to:
   current pose, targets 1… = the original trajectory — the corrective label back onto the demo. Each short episode
   is ONE training sample, that step (``meta/umi_aug_sample_step``, read by the policy dataset). SPARTN's exact
   magnitudes are not public (``../shared/spec/eval_and_deploy.md`` §5); these are ours and configurable.
+* ``ours_spartn`` — not a variant of the paper: ``ours`` (every episode, as exported) + ``spartn``'s perturbed
+  samples of the same demos, episode for episode the same bytes as each alone. It tells whether the two add up:
+  cone starts that cover where the evaluation begins, and corrections back onto the demo's path near it.
 
 Every output is written to a temporary path and renamed (never half-written); its root attribute
 ``umi_aug_variant`` records what it is.
@@ -40,10 +43,12 @@ from umi_aug.errors import AugmentError
 from umi_aug.geometry import pos_rotvec_to_pose, so3_exp
 from umi_aug.geometry.umi import camera_poses_from_tcp_poses, tcp_poses_from_camera_poses
 
-__all__ = ["VARIANTS", "SpartnConfig", "write_variant", "subset_variant", "action_only_sources", "spartn_perturbation",
-           "VARIANT_ATTR"]
+__all__ = ["VARIANTS", "SPARTN_VARIANTS", "SpartnConfig", "write_variant", "subset_variant", "action_only_sources",
+           "spartn_perturbation", "VARIANT_ATTR"]
 
-VARIANTS: tuple[str, ...] = ("none", "ours", "gt_render", "action_only", "spartn")
+VARIANTS: tuple[str, ...] = ("none", "ours", "gt_render", "action_only", "spartn", "ours_spartn")
+#: The variants that add SPARTN's perturbed samples.
+SPARTN_VARIANTS: tuple[str, ...] = ("spartn", "ours_spartn")
 VARIANT_ATTR = "umi_aug_variant"
 
 
@@ -143,10 +148,10 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
         out_path: the ``.zarr.zip`` to write (temporary path, then rename).
         render_new: ``gt_render``: ``(episode, info) -> [s, S, S, 3]``, the frames ``0..s-1`` of an augmented
             episode (``info``: its ``T_world_cam`` [N, 4, 4], ``gripper_width`` [N], ``splice`` = ``n_new`` = s,
-            ``source`` demo); ``spartn``: ``(source episode, info) -> [K, S, S, 3]`` frames at
+            ``source`` demo); ``spartn`` / ``ours_spartn``: ``(source episode, info) -> [K, S, S, 3]`` frames at
             ``info["T_world_cam"]`` ([K, 4, 4]) with the gripper of the demo's frames ``info["overlay_rows"]`` [K].
             :func:`square_render_functions` makes both for a square demo folder.
-        spartn: :class:`SpartnConfig` (``spartn`` only).
+        spartn: :class:`SpartnConfig` (``spartn`` and ``ours_spartn`` only).
         label: the variant name recorded in the output (default ``variant``; :func:`subset_variant`).
     Returns:
         summary dict (episodes, frames rendered, per-kind counts) — also stored as the root attribute
@@ -154,7 +159,7 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
     """
     if variant not in VARIANTS:
         raise AugmentError(f"write_variant: variant {variant!r}; expected one of {VARIANTS}")
-    if variant in ("gt_render", "spartn") and render_new is None:
+    if (variant == "gt_render" or variant in SPARTN_VARIANTS) and render_new is None:
         raise AugmentError(f"write_variant({variant}): needs render_new (the frames it renders)")
     if Path(out_path).resolve() == Path(ours_path).resolve():
         raise AugmentError(f"write_variant({variant}): out_path {out_path} is the source export itself; choose "
@@ -184,7 +189,7 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
             low = _lowdim(src, rows)
             s = int(splice[e])
             info = {"rows": rows, "splice": s, "source": int(src_ep[e])}
-            if aug_id[e] < 0 or variant in ("none", "ours"):
+            if aug_id[e] < 0 or variant in ("none", "ours", "ours_spartn"):
                 _add(buf, src, low, np.zeros((0,) + src[IMAGE_KEY].shape[1:], np.uint8), rows, record)
             elif variant == "action_only":  # the original frames' stored chunks, copied (no re-encode)
                 o = int(src_ep[e])
@@ -201,10 +206,10 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
                 summary["frames_new"] += s
             summary["episodes"] += 1
             summary["augmented"] += int(aug_id[e] >= 0)
-            if variant == "spartn":
+            if variant == "spartn" or (variant == "ours_spartn" and aug_id[e] == -1):
                 summary["frames_new"] += _spartn_episodes(buf, src, e, rows, s, spartn or SpartnConfig(),
                                                           render_new, summary, steps)
-        buf.root.attrs[VARIANT_ATTR] = summary | {"spartn": asdict(spartn) if variant == "spartn" and spartn
+        buf.root.attrs[VARIANT_ATTR] = summary | {"spartn": asdict(spartn) if variant in SPARTN_VARIANTS and spartn
                                                   else None}
         if "T_cam_tcp" in src.root.attrs:
             buf.root.attrs["T_cam_tcp"] = src.root.attrs["T_cam_tcp"]
