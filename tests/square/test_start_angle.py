@@ -63,7 +63,7 @@ def test_the_report_section_has_a_row_per_evaluated_cell(tmp_path):
     rng = np.random.default_rng(0)
     T = _starts([10.0, 45.0], 4, np.eye(3), rng)  # configs 0-3 at 10°, 4-7 at 45°
     path = tmp_path / "configs.npz"
-    np.savez(path, T_world_cam=T)
+    np.savez(path, T_world_cam=T, states=np.zeros((len(T), 3)))
     rows = {"a": {i: {"success": i < 2, "pregrasp_reached": i in (0, 5)} for i in range(8)}, "b": {}}
     cells = [{"name": "a"}, {"name": "b"}]
     lines = start_angle_section(cells, lambda c: rows[c["name"]], path, (0.0, 30.0))
@@ -72,3 +72,6 @@ def test_the_report_section_has_a_row_per_evaluated_cell(tmp_path):
     assert start_angle_section([{"name": "b"}], lambda c: rows[c["name"]], path) == []
     missing = start_angle_section(cells, lambda c: rows[c["name"]], tmp_path / "nope.npz")
     assert any("not on this machine" in ln for ln in missing)
+    np.savez(path, states=np.zeros((8, 3)))  # no poses: one error naming the file and the key
+    with pytest.raises(Exception, match=r"configs\.npz.*T_world_cam"):
+        start_angle_section(cells, lambda c: rows[c["name"]], path)

@@ -73,8 +73,9 @@ def start_angle_section(cells: list[dict[str, Any]], rows_of, configs_file: str 
     path = Path(configs_file)
     if not path.is_file():
         return ["", "## Outcomes by the start's angle", "", f"(`{path}` is not on this machine: no table.)"]
-    with np.load(path, allow_pickle=False) as z:
-        angles = start_angles_deg(z["T_world_cam"])
+    from umi_aug.eval.runner import load_eval_configs  # lazy, start-up: the evaluation harness
+
+    angles = start_angles_deg(load_eval_configs(path)["T_world_cam"])  # names the file and key it finds wrong
     tables = [(c, outcomes_by_start_angle(r, angles, edges_deg)) for c, r in evaluated]
     bins = [b["bin"] for b in tables[0][1]]
     head = "| cell | " + " | ".join(f"{b}: n / success / pre-grasp" for b in bins) + " |"
