@@ -498,7 +498,7 @@ def _write_png(cfg, cells, metrics, handover: dict[str, Any] | None = None) -> N
             med = np.array([m["closest_pregrasp_mm_median"] for _, m in pts])
             ci = np.array([m["closest_pregrasp_mm_ci95"] for _, m in pts])
             ax_mm.errorbar([n for n, _ in pts], med, yerr=[med - ci[:, 0], ci[:, 1] - med], marker="o", capsize=3,
-                             label=v, color=colour[v])
+                           label=v, color=colour[v])
     ax_mm.set_xlabel("source demos")
     ax_mm.set_ylabel("mm")
     ax_mm.set_title("closest approach to pre-grasp (median, 95 %)")

@@ -206,7 +206,7 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
                 summary["frames_new"] += s
             summary["episodes"] += 1
             summary["augmented"] += int(aug_id[e] >= 0)
-            if variant == "spartn" or (variant == "ours_spartn" and aug_id[e] == -1):
+            if variant in SPARTN_VARIANTS and aug_id[e] == -1:  # a source demo: its perturbed samples
                 summary["frames_new"] += _spartn_episodes(buf, src, e, rows, s, spartn or SpartnConfig(),
                                                           render_new, summary, steps)
         buf.root.attrs[VARIANT_ATTR] = summary | {"spartn": asdict(spartn) if variant in SPARTN_VARIANTS and spartn
