@@ -210,6 +210,26 @@ def _gn(c: int) -> nn.GroupNorm:
     return nn.GroupNorm(max(1, c // 16 if c % 16 == 0 else c // 8), c)
 
 
+class _StridedPointwiseConv(nn.Conv2d):
+    """A 1×1 convolution with stride ``s`` and no padding, computed as a stride-1 1×1 convolution of every ``s``-th
+    pixel (``x[..., ::s, ::s]``): the same output, the same weight, the same checkpoint keys as
+    ``nn.Conv2d(c_in, c_out, 1, s, bias=False)``, which is its reference. oneDNN's own strided 1×1 backward-weights
+    kernel on channels-last input with fewer input channels than its block (16 on AVX-512) writes past its
+    workspace: wrong weight gradients, a hang or a crash ("double free or corruption"; oneDNN issue #6035, seen
+    with torch 2.13.0 at resnet_width=8). The stride-1 kernel does not take that path."""
+
+    def __init__(self, c_in: int, c_out: int, stride: int) -> None:
+        super().__init__(c_in, c_out, 1, 1, bias=False)
+        self.subsample = int(stride)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.subsample > 1:
+            fmt = torch.channels_last if x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous() \
+                else torch.contiguous_format
+            x = x[..., ::self.subsample, ::self.subsample].contiguous(memory_format=fmt)
+        return super().forward(x)
+
+
 class _BasicBlock(nn.Module):
     def __init__(self, c_in: int, c_out: int, stride: int) -> None:
         super().__init__()
@@ -218,7 +238,7 @@ class _BasicBlock(nn.Module):
         self.conv2 = nn.Conv2d(c_out, c_out, 3, 1, 1, bias=False)
         self.norm2 = _gn(c_out)
         self.down = None if stride == 1 and c_in == c_out else nn.Sequential(
-            nn.Conv2d(c_in, c_out, 1, stride, bias=False), _gn(c_out))
+            _StridedPointwiseConv(c_in, c_out, stride), _gn(c_out))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = torch.relu(self.norm1(self.conv1(x)))
