@@ -79,7 +79,7 @@ def load_sources(export: Path, sources: set[int]) -> dict[int, dict]:
 def replay(env, state0: np.ndarray, ep: dict, extra_steps: int, place_by_ik: bool, seed: int) -> dict:
     """Execute ``ep``'s labels from ``state0`` (arm moved by IK to the episode's first TCP pose when
     ``place_by_ik``); the record of eval's probe plus tracking errors (mm, degrees)."""
-    from umi_aug.geometry import pos_rotvec_to_pose, pose_inverse, so3_log
+    from umi_aug.geometry import pos_rotvec_to_pose, so3_log
     from umi_aug.square.env import GRIP_SITE
     from umi_aug.square.eval import SceneProbe
     from umi_aug.square.ik import PandaIK
@@ -89,20 +89,14 @@ def replay(env, state0: np.ndarray, ep: dict, extra_steps: int, place_by_ik: boo
     rec: dict = {"episode": ep["episode"], "source": ep["source"], "splice": ep["splice"], "steps": len(ep["pos"])}
     T_tcp0 = pos_rotvec_to_pose(np.r_[ep["pos"][0], ep["rotvec"][0]])
     if place_by_ik:
-        # the TCP is the grip site's position with the wrist camera's rotation (SquareEnv.tcp_pose): the IK target
-        # is the grip site's own pose, reached through the camera (as eval's start configurations are sampled)
-        T_cam_site = pose_inverse(env.wrist_pose()) @ env.site_pose(GRIP_SITE)
-        T_site0 = T_tcp0 @ pose_inverse(env.T_cam_tcp()) @ T_cam_site
-        ik = PandaIK(env.model, GRIP_SITE)
-        res = ik.solve(env.data, T_site0, rng=np.random.default_rng(seed))
+        from umi_aug.square.oracle import episode_start_state
+
+        state, res = episode_start_state(env, PandaIK(env.model, GRIP_SITE), env.get_state(), T_tcp0, seed)
         rec.update(ik_reachable=bool(res.reachable), ik_pos_err_mm=1e3 * res.pos_err,
                    ik_collisions=list(res.collisions))
-        if not res.reachable:
+        if state is None:
             return rec
-        env.data.qpos[ik.qadr] = res.q  # the arm at the solution, at rest (as eval's start configurations)
-        env.data.qvel[:] = 0.0
-        env.rs.sim.forward()
-        env.reset_to(env.get_state(), initial=True)
+        env.reset_to(state, initial=True)
     T = env.tcp_pose()
     rec.update(start_pos_err_mm=1e3 * float(np.linalg.norm(T[:3, 3] - T_tcp0[:3, 3])),
                start_rot_err_deg=math.degrees(float(np.linalg.norm(so3_log(T[:3, :3] @ T_tcp0[:3, :3].T)))))

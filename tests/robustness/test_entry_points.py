@@ -494,4 +494,4 @@ def test_square_study_recipe_file_keys_and_listing(tmp_path):
     res = _script("eval/square_study.py", "recipe=cpux", cwd=tmp_path)
     assert res.returncode == 2
     assert res.stderr.strip() == (f"square_study: recipe=cpux: no recipe file {ROOT / 'configs/square_study/cpux.yaml'}"
-                                  "; the shipped recipes are cpu, cpu_regression, paper (or pass a .yaml path)")
+                                  "; the shipped recipes are cpu, cpu_abs, cpu_regression, paper (or pass a .yaml path)")

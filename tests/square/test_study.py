@@ -33,6 +33,12 @@ def test_recipes_load_and_bad_keys_are_named(tmp_path):
     reg = st.load_recipe(ROOT / "configs" / "square_study" / "cpu_regression.yaml")  # issue #29 part 4
     assert st.expected_rollouts(reg) == 500 and st.expected_rollouts(reg, handover=True) == 100
     assert reg.eval_handover and not cpu.eval_handover and not paper.eval_handover
+    # cpu_abs (session 29) is cpu_regression with absolute actions and nothing else: its cells pair with the record
+    ab = st.load_recipe(ROOT / "configs" / "square_study" / "cpu_abs.yaml")
+    differ = {k for k in vars(reg) if getattr(reg, k) != getattr(ab, k)}
+    assert differ == {"name", "out_dir", "record_dir", "report_md", "report_png", "train_overrides"}, differ
+    assert [a for a in ab.train_overrides if a not in reg.train_overrides] == ["task.action_pose_repr=abs"]
+    assert [a for a in reg.train_overrides if a not in ab.train_overrides] == ["task.action_pose_repr=relative"]
     # every recipe writes its own report; docs/square_study.md is the hand-written overview no recipe overwrites
     shipped = [st.load_recipe(p) for p in sorted((ROOT / "configs" / "square_study").glob("*.yaml"))]
     assert len({r.report_md for r in shipped}) == len(shipped) >= 3
@@ -69,7 +75,7 @@ def test_the_study_trains_on_every_demo(tmp_path):
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
     ds = make_dataset(tmp_path / "d.zarr.zip", np.random.default_rng(0), n_episodes=10, length=30, size=84)
     ds = with_commanded_targets(ds, tmp_path / "a.zarr.zip", np.random.default_rng(1))[0]  # task=square labels
-    for recipe in ("cpu", "paper", "cpu_regression"):
+    for recipe in ("cpu", "paper", "cpu_regression", "cpu_abs"):
         cfg = st.load_recipe(ROOT / "configs" / "square_study" / f"{recipe}.yaml")
         cmd = st.train_command(cfg, {"name": "none_n10", "variant": "none", "n": 10})
         over = [a for a in cmd[2:] if not a.startswith(("hydra.", "task.dataset_path="))]

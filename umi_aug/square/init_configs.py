@@ -32,7 +32,7 @@ from umi_aug.square.env import GRIP_SITE, SquareEnv
 from umi_aug.square.ik import PandaIK
 
 __all__ = ["InitConfigSpec", "source_states_from_hdf5", "source_states_from_seeds", "sample_init_configs",
-           "reset_init_configs", "write_init_configs", "load_init_configs", "apply_init_config"]
+           "reset_init_configs", "write_init_configs", "load_init_configs", "apply_init_config", "place_arm"]
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,8 @@ def source_states_from_seeds(env: SquareEnv, seeds: list[int]) -> np.ndarray:
     return np.stack(out)
 
 
-def _place_arm(env: SquareEnv, q: np.ndarray, qadr: np.ndarray) -> None:
+def place_arm(env: SquareEnv, q: np.ndarray, qadr: np.ndarray) -> None:
+    """Set the arm joints ``q`` [7] (at ``qpos[qadr]``) at rest and recompute the scene's kinematics."""
     d = env.data
     d.qpos[qadr] = q
     d.qvel[:] = 0.0
@@ -123,7 +124,7 @@ def sample_init_configs(env: SquareEnv, sources: np.ndarray, spec: InitConfigSpe
         else:
             raise SimError(f"sample_init_configs: config {i} (source {j}): no reachable, collision-free pose in "
                            f"{spec.max_tries_per_config} tries (θ={spec.theta_deg}°, r={spec.radius} m)")
-        _place_arm(env, res.q, ik.qadr)
+        place_arm(env, res.q, ik.qadr)
         T_reached = env.site_pose(GRIP_SITE)
         out["states"].append(env.get_state())
         out["source_index"].append(j)
