@@ -152,7 +152,10 @@ def along_the_demos(checkpoints: list[str], dataset: str, episodes: list[int], f
                     dr = np.degrees(np.mean([np.linalg.norm(so3_log(a.T @ b)) for a, b in zip(Rc, Rw)]))
                     err[f].append((dp, dr))
             cols.append(err)
-            table.add_column(Path(ckpt).parent.parent.name or ckpt, justify="right")
+            names = [Path(c).parent.parent.name for c in checkpoints]  # <run>/checkpoints/<file>
+            mine = names[len(cols) - 1]
+            label = mine if names.count(mine) == 1 else "/".join(Path(ckpt).parts[-5:-2])
+            table.add_column(label or ckpt, justify="right")
     for f in frames:
         table.add_row(str(f), *(f"{np.mean([e[0] for e in c[f]]):.1f} / {np.mean([e[1] for e in c[f]]):.1f}"
                                 if c[f] else "-" for c in cols))
