@@ -90,9 +90,15 @@ def _export_main(args: argparse.Namespace) -> int:
             print(f"error: --episodes {args.episodes!r}: expected a non-empty range 'a:b' or 'a:b:step'",
                   file=sys.stderr)
             return 2
+    from umi_aug.errors import UmiAugError
+
     configure_threads(1)
-    out = {r: run_export_oracle(args.export, args.demos_hdf5, episodes,
-                                oracle_config("commanded", action_pose_repr=r), progress=True) for r in reprs}
+    try:
+        out = {r: run_export_oracle(args.export, args.demos_hdf5, episodes,
+                                    oracle_config("commanded", action_pose_repr=r), progress=True) for r in reprs}
+    except (UmiAugError, OSError) as exc:  # a missing / foreign file, an episode out of range or reach
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(f"\nexport oracle: {args.export}, each episode's own chunks from its own start (time-indexed)")
     head = f"{'action_pose_repr':<18}{'episodes':<10}{'success':>10}{'pre-grasp':>11}{'lifted':>9}"
     print(head + "\n" + "-" * len(head))

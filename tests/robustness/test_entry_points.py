@@ -495,3 +495,18 @@ def test_square_study_recipe_file_keys_and_listing(tmp_path):
     assert res.returncode == 2
     assert res.stderr.strip() == (f"square_study: recipe=cpux: no recipe file {ROOT / 'configs/square_study/cpux.yaml'}"
                                   "; the shipped recipes are cpu, cpu_abs, cpu_regression, paper (or pass a .yaml path)")
+
+
+def test_square_oracle_export_mode_names_bad_input(tmp_path):
+    """``eval/square_oracle.py --export``: a missing export, an unknown action representation and an empty episode
+    range each give one ``error:`` line naming the value and exit 2 (no traceback, nothing written)."""
+    missing = tmp_path / "missing.zarr.zip"
+    out = tmp_path / "o.json"
+    for args, want in (([f"--export={missing}"], str(missing)),
+                       ([f"--export={missing}", "--action-pose-repr", "relative,absolute"], "'relative,absolute'"),
+                       ([f"--export={missing}", "--episodes", "5:5"], "'5:5'")):
+        res = _script("eval/square_oracle.py", *args, "--out", str(out), cwd=tmp_path)
+        assert res.returncode == 2, res.stderr[-2000:]
+        errs = _errors(res)
+        assert len(errs) == 1 and want in errs[0], res.stderr[-2000:]
+        assert not out.exists()

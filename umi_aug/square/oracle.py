@@ -140,10 +140,11 @@ LABELS: tuple[str, ...] = ("commanded", "reached")
 
 
 def oracle_config(labels: str = "commanded", image_size: int = 84, obs_pose_repr: str = "relative",
-                  action_pose_repr: str = "relative") -> TrainConfig:
-    """The square task's training config (``configs/task/square.yaml`` values that matter here), with the labels
-    taken from the commanded targets or, for the contrast, the reached poses (UMI's rule), and the given pose
-    representations (``task.obs_pose_repr`` / ``task.action_pose_repr``: ``relative`` or ``abs``)."""
+                  action_pose_repr: str = "abs") -> TrainConfig:
+    """The square task's training config (``configs/task/square.yaml`` values that matter here: absolute action
+    targets since session 29), with the labels taken from the commanded targets or, for the contrast, the reached
+    poses (UMI's rule), and the given pose representations (``task.obs_pose_repr`` / ``task.action_pose_repr``:
+    ``relative`` or ``abs``)."""
     if labels not in LABELS:
         raise ValueError(f"labels = {labels!r}: expected one of {LABELS}")
     return structured_config({"task": {"name": "square", "image_size": image_size, "obs_down_sample_steps": 1,
@@ -220,7 +221,7 @@ def run_export_oracle(export: Any, demos_hdf5: Any, episodes: list[int] | None =
             start of every episode whose ``aug_source_episode`` is ``d``.
         episodes: episode indices (default: all).
         cfg: the training config whose task representations the chunks are cut and re-anchored with (default
-            :func:`oracle_config`: commanded targets, relative poses).
+            :func:`oracle_config`: commanded targets, absolute action targets as ``configs/task/square.yaml``).
     Returns:
         one record per episode: ``episode``, ``source``, ``aug_id`` (−1: an original demo), ``length``,
         ``ik_pos_err_m``, and the rollout's ``success``, ``pregrasp_reached``, ``lifted``, ``steps``,
