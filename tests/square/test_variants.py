@@ -351,6 +351,35 @@ def test_subset_of_a_variant_equals_the_variant_of_fewer_demos(fake_export, tmp_
         assert _stored_chunks(direct) == _stored_chunks(cut)
 
 
+def test_ours_with_fewer_augmented_episodes_per_demo(fake_export, tmp_path):
+    """``per_demo=k`` keeps every demo and each demo's first k augmented episodes, episode for episode the bytes of
+    the full ``ours``; ``per_demo=0`` is ``none``; a negative count is refused."""
+    from umi_aug.errors import AugmentError
+    from umi_aug.square.variants import write_variant
+
+    src, _ = fake_export
+    full, one, zero, none = (tmp_path / f"{k}.zarr.zip" for k in ("full", "k1", "k0", "none"))
+    write_variant("ours", src, full, 3, progress=False)
+    summ = write_variant("ours", src, one, 3, progress=False, per_demo=1)
+    write_variant("ours", src, zero, 3, progress=False, per_demo=0)
+    write_variant("none", src, none, 3, progress=False)
+    a, k1 = _read(full), _read(one)
+    assert summ["per_demo"] == 1 and summ["augmented"] == 3 and summ["episodes"] == 6
+    kept = [e for e in range(len(a[1])) if a[2]["aug_id"][e] < 1]
+    assert list(k1[2]["aug_id"]) == [a[2]["aug_id"][e] for e in kept]
+    starts = np.concatenate([[0], a[1][:-1]])
+    rows = np.concatenate([np.arange(starts[e], a[1][e]) for e in kept])
+    for k in a[0]:
+        np.testing.assert_array_equal(k1[0][k], a[0][k][rows], err_msg=k)
+    z, n = _read(zero), _read(none)
+    np.testing.assert_array_equal(z[1], n[1])
+    for k in n[0]:
+        np.testing.assert_array_equal(z[0][k], n[0][k])
+    with pytest.raises(AugmentError, match="per_demo = -1"):
+        write_variant("ours", src, tmp_path / "bad.zarr.zip", 3, progress=False, per_demo=-1)
+    assert not (tmp_path / "bad.zarr.zip").exists()
+
+
 def test_frames_sheet_pairs_the_right_frames(fake_export, tmp_path):
     """The study's picture of what each variant trains on: the panels are the datasets' own frames, and each SPARTN
     perturbed frame is shown beside the source frame it perturbs (checked through the stored poses)."""

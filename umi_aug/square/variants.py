@@ -138,8 +138,8 @@ def _add(buf, src, lowdim: dict[str, np.ndarray], new_frames: np.ndarray, src_ro
 
 def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os.PathLike, n_demos: int, *,
                   render_new: Callable[[int, dict[str, Any]], np.ndarray] | None = None,
-                  spartn: SpartnConfig | None = None, progress: bool = True, label: str | None = None
-                  ) -> dict[str, Any]:
+                  spartn: SpartnConfig | None = None, progress: bool = True, label: str | None = None,
+                  per_demo: int | None = None) -> dict[str, Any]:
     """Write the ``variant`` dataset of the first ``n_demos`` source demos of the export ``ours_path``.
 
     Args:
@@ -153,6 +153,8 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
             :func:`square_render_functions` makes both for a square demo folder.
         spartn: :class:`SpartnConfig` (``spartn`` and ``ours_spartn`` only).
         label: the variant name recorded in the output (default ``variant``; :func:`subset_variant`).
+        per_demo: keep only each demo's first ``per_demo`` augmented episodes (``meta/aug_id < per_demo``; None:
+            all) — fewer augmented episodes per demo from the same export, episode for episode the same bytes.
     Returns:
         summary dict (episodes, frames rendered, per-kind counts) — also stored as the root attribute
         :data:`VARIANT_ATTR`.
@@ -169,13 +171,18 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
     n_src = int((aug_id == -1).sum())  # source demos (-2: SPARTN episodes of a spartn variant)
     if n_demos < 1 or n_demos > n_src:
         raise AugmentError(f"{ours_path}: n_demos = {n_demos}; the export holds {n_src} source demos")
+    if per_demo is not None and int(per_demo) < 0:
+        raise AugmentError(f"write_variant({variant}): per_demo = {per_demo}; expected >= 0 or None")
     out_path = Path(out_path)
     summary: dict[str, Any] = {"variant": label or variant, "n_demos": int(n_demos), "source": str(ours_path),
                                "episodes": 0, "augmented": 0, "frames_new": 0}
+    if per_demo is not None:
+        summary["per_demo"] = int(per_demo)
     with ReplayBuffer.open(ours_path) as src:
         ends = np.asarray(src.episode_ends)
         starts = np.concatenate([[0], ends[:-1]])
-        keep = [e for e in range(len(ends)) if src_ep[e] < n_demos and (aug_id[e] < 0 or variant != "none")]
+        keep = [e for e in range(len(ends)) if src_ep[e] < n_demos and (aug_id[e] < 0 or variant != "none")
+                and (per_demo is None or aug_id[e] < int(per_demo))]
         if variant == "spartn":
             keep = [e for e in keep if aug_id[e] < 0]
         buf = _empty_like(src)
