@@ -213,3 +213,31 @@ def test_workspace_reuses_its_persistent_loader(dataset_path, tmp_path):
     cfg.dataloader.persistent_workers = False
     c = TrainWorkspace(cfg)._loader(ds, True, 1)
     assert not c.persistent_workers and c is not a
+
+
+def test_on_the_fly_slots_skip_the_replayed_tail(aug_session, aug_assets, monkeypatch):
+    """``task.sample_replayed_tails=false``: an augmented slot's current step lies before the steps that read only
+    the replayed tail (those samples are the original episode's own, which the dataset already holds)."""
+    from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
+    from umi_aug.policy.dataset import UmiPolicyDataset
+
+    task = _task(sample_replayed_tails=False)
+    original = UmiPolicyDataset(aug_session / "dataset.zarr.zip", task, "train")
+    ds = _dataset(original, aug_assets)
+    every = _dataset(UmiPolicyDataset(aug_session / "dataset.zarr.zip", _task(), "train"), aug_assets)
+    seen: list[tuple[int, int, int, int]] = []
+    real = AugmentedUmiDataset.augmented_sample
+
+    def spy(self, demo, aug_id, mode, cur, noise_rng=None):
+        p = self.planned(demo, aug_id, mode)
+        seen.append((cur, p.splice_index, self.n_current_steps(p.n_frames), p.n_frames))
+        return real(self, demo, aug_id, mode, cur, noise_rng)
+
+    monkeypatch.setattr(AugmentedUmiDataset, "augmented_sample", spy)
+    for i in range(len(original), len(original) + 12):
+        ds[i]
+    first_tail_only = [s + max(1, (task.img_obs_horizon - 1) * task.obs_down_sample_steps) for _, s, _, _ in seen]
+    assert seen and all(cur < f for (cur, *_), f in zip(seen, first_tail_only))
+    # the same slots with every step a sample may reach the tail: the limit is what cuts them
+    _, s, n_all, n = seen[0]
+    assert ds.n_current_steps(n, s) == min(n_all, first_tail_only[0]) < every.n_current_steps(n)

@@ -33,11 +33,13 @@ def test_recipes_load_and_bad_keys_are_named(tmp_path):
     reg = st.load_recipe(ROOT / "configs" / "square_study" / "cpu_regression.yaml")  # issue #29 part 4
     assert st.expected_rollouts(reg) == 500 and st.expected_rollouts(reg, handover=True) == 100
     assert reg.eval_handover and not cpu.eval_handover and not paper.eval_handover
-    # cpu_abs (session 29) is cpu_regression with absolute actions and nothing else: its cells pair with the record
+    # cpu_abs (session 29) is cpu_regression with absolute actions and, since session 30, without re-sampling the
+    # augmented episodes' replayed tails (a no-op for none and spartn), and nothing else
     ab = st.load_recipe(ROOT / "configs" / "square_study" / "cpu_abs.yaml")
     differ = {k for k in vars(reg) if getattr(reg, k) != getattr(ab, k)}
     assert differ == {"name", "out_dir", "record_dir", "report_md", "report_png", "train_overrides"}, differ
-    assert [a for a in ab.train_overrides if a not in reg.train_overrides] == ["task.action_pose_repr=abs"]
+    assert [a for a in ab.train_overrides if a not in reg.train_overrides] == ["task.action_pose_repr=abs",
+                                                                                "task.sample_replayed_tails=false"]
     assert [a for a in reg.train_overrides if a not in ab.train_overrides] == ["task.action_pose_repr=relative"]
     # every recipe writes its own report; docs/square_study.md is the hand-written overview no recipe overwrites
     shipped = [st.load_recipe(p) for p in sorted((ROOT / "configs" / "square_study").glob("*.yaml"))]

@@ -207,11 +207,18 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         return ([pose6], [ep["robot0_gripper_width"].astype(np.float64)], [ep["robot0_demo_start_pose"]],
                 action7)
 
-    def n_current_steps(self, n_frames: int) -> int:
-        """Valid current steps of an episode of ``n_frames`` frames (UMI: the action window must fit)."""
+    def n_current_steps(self, n_frames: int, splice_index: int | None = None) -> int:
+        """Valid current steps of an episode of ``n_frames`` frames (UMI: the action window must fit); with
+        ``task.sample_replayed_tails=false`` and the episode's ``splice_index``, only the steps before those that
+        read nothing but the replayed tail (the original samples already hold those:
+        :func:`~umi_aug.policy.dataset.replayed_tail_first_sample`)."""
         t = self.original.task
         span = (t.action_horizon - 1) * t.obs_down_sample_steps + 1
-        return n_frames if t.action_padding else max(0, n_frames - span + 1)
+        n = n_frames if t.action_padding else max(0, n_frames - span + 1)
+        if not t.sample_replayed_tails and splice_index is not None:
+            h = max(t.img_obs_horizon, t.low_dim_obs_horizon)
+            n = min(n, int(splice_index) + max(1, (h - 1) * t.obs_down_sample_steps))
+        return n
 
     def slot(self, j: int, draw: int = 0) -> tuple[int, int, str, np.random.Generator]:
         """Demo, aug id, mode of augmented slot ``j`` (its ``draw``-th try) and the slot's generator (for the step
@@ -271,7 +278,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             planned = self.planned(demo, aug_id, mode)
             if planned is None:
                 continue
-            steps = self.n_current_steps(planned.n_frames)
+            steps = self.n_current_steps(planned.n_frames, planned.splice_index)
             if steps == 0:
                 continue
             sample = self.augmented_sample(demo, aug_id, mode, int(rng.integers(steps)), rng)
@@ -324,6 +331,9 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         # planned episodes are whole episodes: every step a sample (-1), the originals keep their own setting
         extra.sample_step = np.concatenate([np.asarray(self.original.sample_step, np.int64),
                                             np.full(len(ends) - len(self.original.sample_step), -1, np.int64)])
+        pad = np.full(len(ends) - len(self.original.sample_step), -1, np.int64)  # normaliser: every step
+        extra.tail_first_sample = np.concatenate([self.original.tail_first_sample, pad])
+        extra.tail_source = np.concatenate([self.original.tail_source, pad])
         extra.val_mask = np.zeros(len(ends), bool)
         extra.val_mask[: len(self.original.val_mask)] = self.original.val_mask
         extra.split = "train"

@@ -11,6 +11,8 @@ Per sample index (a "current" step ``c`` of episode ``[s, e)``), with down-sampl
   Windows that cross the episode end are skipped unless ``action_padding`` (then the last row repeats). The rows
   are the TCP poses and widths (UMI), or, with ``task.action_key``, the stored absolute commanded targets
   (``[N, 7·R]``), made relative to the same observed pose ``c``.
+* ``task.sample_replayed_tails=false``: an augmented episode's samples that read only rows after its splice are
+  left out; the same frames and labels are the source demo's own samples (:func:`replayed_tail_first_sample`).
 
 Episodes are split into train / validation by UMI's ``get_val_mask`` (same seed → same episodes as UMI). The
 normaliser is fitted from the low-dim arrays only (no image is decoded). The zarr store is opened lazily once per
@@ -37,7 +39,8 @@ from umi_aug.policy.config import TaskConfig, shape_meta
 from umi_aug.policy.normalizer import LinearNormalizer, identity_params, range_params
 from umi_aug.policy.pose_repr import abs_actions_to_model, obs_pose_to_model, wrt_start_rot6d
 
-__all__ = ["UmiPolicyDataset", "get_val_mask", "sample_frame_indices", "frame_rows", "window_rows", "lowdim_from_rows",
+__all__ = ["UmiPolicyDataset", "get_val_mask", "replayed_tail_first_sample", "sample_frame_indices", "frame_rows",
+           "window_rows", "lowdim_from_rows",
            "to_sample", "to_batch"]
 
 log = logging.getLogger(__name__)
@@ -62,6 +65,53 @@ def _read_sample_steps(buf, path, ends: np.ndarray) -> np.ndarray:
         raise PolicyError(f"{path}: 'meta/{SAMPLE_STEP_KEY}'[{e}] = {int(steps[e])} is not a step of episode {e} "
                           f"(length {int(lengths[e])}; -1 = every step)")
     return steps.astype(np.int64)
+
+
+#: ``meta/`` records of an augmented export (:mod:`umi_aug.augment.export_store`): ``aug_id`` (-1 = an original
+#: episode, >= 0 an augmented one), the source demo's index, the first replayed frame of an augmented episode.
+_AUG_ID, _AUG_SOURCE, _AUG_SPLICE = "aug_id", "aug_source_episode", "aug_splice_index"
+
+
+def replayed_tail_first_sample(buf, path, task: TaskConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Per episode, the first episode-relative sample step whose every row lies in the replayed tail (or -1), and
+    the buffer episode it replays (or -1).
+
+    An augmented episode (``meta/aug_id`` >= 0) replays its source demo (the episode with ``aug_id`` -1 and the
+    same ``meta/aug_source_episode``) from its splice ``k``
+    (``meta/aug_splice_index``, the first replayed frame; the label at ``k`` is still the planned one). A sample at
+    step ``c`` reads observation rows ``c-(h-1)d … c`` (h = the longer observation horizon, d = down-sampling)
+    and label rows ``c … c+(H-1)d``, so from ``c = k + max(1, (h-1)d)`` on it reads only replayed frames and
+    labels: those of the source episode's own sample at its matching step (only ``wrt_start``, relative to the
+    augmented start, differs).
+    Episodes whose source is not an original episode of this buffer, original episodes, other episodes (``aug_id``
+    < -1, e.g. SPARTN's) and buffers without these records give -1 (keep every sample).
+    The caller drops those samples only where the source episode is in the same split.
+
+    Raises:
+        PolicyError: the records exist but do not have one integer per episode.
+    """
+    ends = np.asarray(buf.episode_ends)
+    out, source = np.full(len(ends), -1, np.int64), np.full(len(ends), -1, np.int64)
+    have = set(buf.meta.array_keys())
+    if not {_AUG_ID, _AUG_SOURCE, _AUG_SPLICE} <= have:
+        return out, source
+    rec = {}
+    for key in (_AUG_ID, _AUG_SOURCE, _AUG_SPLICE):
+        arr = np.asarray(buf.meta[key][:])
+        if arr.shape != (len(ends),) or not np.issubdtype(arr.dtype, np.integer):
+            raise PolicyError(f"{path}: 'meta/{key}' has shape {arr.shape} dtype {arr.dtype}; expected one integer "
+                              f"per episode ({len(ends)}) (task.sample_replayed_tails=false reads it)")
+        rec[key] = arr.astype(np.int64)
+    originals = {int(d): int(ep) for ep, d in enumerate(rec[_AUG_SOURCE]) if rec[_AUG_ID][ep] == -1}  # not -2:
+    # a SPARTN short episode of the square study's variants (umi_aug.square.variants)
+    lengths = np.diff(np.concatenate([[0], ends]))
+    h = max(task.img_obs_horizon, task.low_dim_obs_horizon)
+    for ep in np.flatnonzero(rec[_AUG_ID] >= 0):
+        k = int(rec[_AUG_SPLICE][ep])
+        if 0 <= k < lengths[ep] and int(rec[_AUG_SOURCE][ep]) in originals:
+            out[ep] = k + max(1, (h - 1) * task.obs_down_sample_steps)
+            source[ep] = originals[int(rec[_AUG_SOURCE][ep])]
+    return out, source
 
 
 def get_val_mask(n_episodes: int, val_ratio: float, seed: int = 0) -> np.ndarray:
@@ -232,6 +282,10 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
         if len(self.episode_ends) == 0:
             raise PolicyError(f"{self.path}: the replay buffer has no episodes")
         self.sample_step = _read_sample_steps(buf, self.path, np.asarray(self.episode_ends))
+        n = len(self.episode_ends)
+        self.tail_first_sample, self.tail_source = ((np.full(n, -1, np.int64), np.full(n, -1, np.int64))
+                                                    if self.task.sample_replayed_tails
+                                                    else replayed_tail_first_sample(buf, self.path, self.task))
         self.pose6, self.gripper, self.start_pose = [], [], []
         for i in range(self.task.n_robots):
             pos = np.asarray(buf[f"robot{i}_eef_pos"][:], dtype=np.float64)
@@ -267,6 +321,9 @@ class UmiPolicyDataset(torch.utils.data.Dataset):
                 k = int(self.sample_step[ep])
                 if k >= 0:  # one sample only (meta/umi_aug_sample_step, e.g. a SPARTN short episode)
                     c = c[c == s + k]
+                src = int(self.tail_source[ep])
+                if src >= 0 and self.val_mask[src] == self.val_mask[ep]:  # sample_replayed_tails=false: the
+                    c = c[c < s + int(self.tail_first_sample[ep])]       # source episode gives these samples
                 cur.append(c)
                 start.append(np.full_like(c, s))
                 end.append(np.full_like(c, e))
