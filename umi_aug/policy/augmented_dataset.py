@@ -37,7 +37,8 @@ import numpy as np
 import torch
 
 from umi_aug.errors import PolicyError
-from umi_aug.policy.dataset import UmiPolicyDataset, lowdim_from_rows, sample_frame_indices, to_sample, window_rows
+from umi_aug.policy.dataset import (UmiPolicyDataset, first_tail_only_step, lowdim_from_rows, sample_frame_indices,
+                                    to_sample, window_rows)
 from umi_aug.policy.augmented_paths import FAST_PATHS, PlanDiskCache, sample_frames
 from umi_aug.policy.normalizer import LinearNormalizer
 
@@ -210,14 +211,12 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
     def n_current_steps(self, n_frames: int, splice_index: int | None = None) -> int:
         """Valid current steps of an episode of ``n_frames`` frames (UMI: the action window must fit); with
         ``task.sample_replayed_tails=false`` and the episode's ``splice_index``, only the steps before those that
-        read nothing but the replayed tail (the original samples already hold those:
-        :func:`~umi_aug.policy.dataset.replayed_tail_first_sample`)."""
+        read nothing but the replayed tail (the original samples already hold those: :func:`first_tail_only_step`)."""
         t = self.original.task
         span = (t.action_horizon - 1) * t.obs_down_sample_steps + 1
         n = n_frames if t.action_padding else max(0, n_frames - span + 1)
         if not t.sample_replayed_tails and splice_index is not None:
-            h = max(t.img_obs_horizon, t.low_dim_obs_horizon)
-            n = min(n, int(splice_index) + max(1, (h - 1) * t.obs_down_sample_steps))
+            n = min(n, first_tail_only_step(t, splice_index))
         return n
 
     def slot(self, j: int, draw: int = 0) -> tuple[int, int, str, np.random.Generator]:

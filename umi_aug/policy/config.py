@@ -71,7 +71,7 @@ class TaskConfig:
     #: False: an augmented episode (``meta/aug_id`` >= 0) whose source demo is an episode of the same buffer gives
     #: samples only where a row it reads lies at or before its splice (``meta/aug_splice_index``); its later samples
     #: repeat the source episode's own (same frames, poses and labels; only ``wrt_start`` differs), so 20 augmented
-    #: episodes per demo spend ~78 % of a fixed step budget on copies of the demos' tails (issue #29). True = UMI's
+    #: episodes per demo spend ~75 % of a fixed step budget on copies of the demos' tails (issue #29). True = UMI's
     #: rule, every step a sample. Buffers without augmented episodes are unaffected.
     sample_replayed_tails: bool = True
 

@@ -39,8 +39,8 @@ from umi_aug.policy.config import TaskConfig, shape_meta
 from umi_aug.policy.normalizer import LinearNormalizer, identity_params, range_params
 from umi_aug.policy.pose_repr import abs_actions_to_model, obs_pose_to_model, wrt_start_rot6d
 
-__all__ = ["UmiPolicyDataset", "get_val_mask", "replayed_tail_first_sample", "sample_frame_indices", "frame_rows",
-           "window_rows", "lowdim_from_rows",
+__all__ = ["UmiPolicyDataset", "get_val_mask", "first_tail_only_step", "replayed_tail_first_sample",
+           "sample_frame_indices", "frame_rows", "window_rows", "lowdim_from_rows",
            "to_sample", "to_batch"]
 
 log = logging.getLogger(__name__)
@@ -72,17 +72,24 @@ def _read_sample_steps(buf, path, ends: np.ndarray) -> np.ndarray:
 _AUG_ID, _AUG_SOURCE, _AUG_SPLICE = "aug_id", "aug_source_episode", "aug_splice_index"
 
 
+def first_tail_only_step(task: TaskConfig, splice_index: int) -> int:
+    """The first step of an augmented episode spliced at ``splice_index`` (its first replayed frame) whose sample
+    reads only replayed rows: observation rows ``c-(h-1)d … c`` (h = the longer observation horizon,
+    d = down-sampling) at or after the splice and label rows ``c … c+(H-1)d`` after it (the splice row's label is
+    still the planned one)."""
+    h = max(task.img_obs_horizon, task.low_dim_obs_horizon)
+    return int(splice_index) + max(1, (h - 1) * task.obs_down_sample_steps)
+
+
 def replayed_tail_first_sample(buf, path, task: TaskConfig) -> tuple[np.ndarray, np.ndarray]:
     """Per episode, the first episode-relative sample step whose every row lies in the replayed tail (or -1), and
     the buffer episode it replays (or -1).
 
     An augmented episode (``meta/aug_id`` >= 0) replays its source demo (the episode with ``aug_id`` -1 and the
     same ``meta/aug_source_episode``) from its splice ``k``
-    (``meta/aug_splice_index``, the first replayed frame; the label at ``k`` is still the planned one). A sample at
-    step ``c`` reads observation rows ``c-(h-1)d … c`` (h = the longer observation horizon, d = down-sampling)
-    and label rows ``c … c+(H-1)d``, so from ``c = k + max(1, (h-1)d)`` on it reads only replayed frames and
-    labels: those of the source episode's own sample at its matching step (only ``wrt_start``, relative to the
-    augmented start, differs).
+    (``meta/aug_splice_index``, the first replayed frame); from :func:`first_tail_only_step` on, a sample reads
+    only replayed frames and labels: those of the source episode's own sample at its matching step (only
+    ``wrt_start``, relative to the augmented start, differs).
     Episodes whose source is not an original episode of this buffer, original episodes, other episodes (``aug_id``
     < -1, e.g. SPARTN's) and buffers without these records give -1 (keep every sample).
     The caller drops those samples only where the source episode is in the same split.
@@ -105,11 +112,10 @@ def replayed_tail_first_sample(buf, path, task: TaskConfig) -> tuple[np.ndarray,
     originals = {int(d): int(ep) for ep, d in enumerate(rec[_AUG_SOURCE]) if rec[_AUG_ID][ep] == -1}  # not -2:
     # a SPARTN short episode of the square study's variants (umi_aug.square.variants)
     lengths = np.diff(np.concatenate([[0], ends]))
-    h = max(task.img_obs_horizon, task.low_dim_obs_horizon)
     for ep in np.flatnonzero(rec[_AUG_ID] >= 0):
         k = int(rec[_AUG_SPLICE][ep])
         if 0 <= k < lengths[ep] and int(rec[_AUG_SOURCE][ep]) in originals:
-            out[ep] = k + max(1, (h - 1) * task.obs_down_sample_steps)
+            out[ep] = first_tail_only_step(task, k)
             source[ep] = originals[int(rec[_AUG_SOURCE][ep])]
     return out, source
 
