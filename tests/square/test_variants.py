@@ -485,3 +485,70 @@ def test_fidelity_compares_the_same_new_frames(fake_export, tmp_path):
     write_variant("gt_render", src, tmp_path / "gt1.zarr.zip", 1, progress=False,
                   render_new=lambda e, info: np.zeros((info["n_new"], S, S, 3), np.uint8))
     assert fidelity(ours, tmp_path / "gt1.zarr.zip")["frames"] == 25
+
+
+def test_ours_rerender_adds_each_demo_again_as_rendered_and_skips_its_replayed_tail(fake_export, tmp_path):
+    """``ours_rerender`` = ``ours`` + each source demo once more, right after it: the same low-dim rows and
+    records but ``aug_mode`` 3 / ``aug_id`` 0, its pre-splice frames from ``render_new`` at the demo's own poses
+    (with the gripper of the same frames), the rest copied as stored; the training dataset leaves out its
+    replayed-tail samples like an augmented episode's, and keeps its rendered approach."""
+    from umi_aug.policy.config import TaskConfig
+    from umi_aug.policy.dataset import UmiPolicyDataset, replayed_tail_first_sample
+    from umi_aug.square.variants import RERENDER_MODE_CODE, subset_variant, write_variant
+
+    src, demos = fake_export
+    calls = []
+
+    def render(source, info):
+        calls.append(source)
+        np.testing.assert_allclose(info["T_world_cam"], demos[source][0][: info["splice"]], atol=1e-5)
+        np.testing.assert_array_equal(info["overlay_rows"], np.arange(info["splice"]))
+        return np.full((len(info["T_world_cam"]), S, S, 3), 90, np.uint8)
+
+    paths = {v: tmp_path / f"{v}.zarr.zip" for v in ("ours", "ours_rerender")}
+    summ = {v: write_variant(v, src, p, 2, render_new=render if v == "ours_rerender" else None, progress=False)
+            for v, p in paths.items()}
+    assert calls == [0, 1]
+    ours, rr = _episodes(paths["ours"]), _episodes(paths["ours_rerender"])
+    extra = [i for i, e in enumerate(rr) if e["rec/aug_mode"] == RERENDER_MODE_CODE]
+    assert extra == [1, 3] and len(rr) == len(ours) + 2  # each right after its source demo
+    assert summ["ours_rerender"]["frames_new"] == sum(d[3] for d in demos[:2])
+    assert summ["ours_rerender"]["augmented"] == summ["ours"]["augmented"] + 2
+    rest = [e for i, e in enumerate(rr) if i not in extra]
+    for g, w in zip(rest, ours):  # ours, episode for episode
+        for k in w:
+            np.testing.assert_array_equal(g[k], w[k], err_msg=k)
+    chunks_rr, chunks_ours = _stored_chunks(paths["ours_rerender"]), _stored_chunks(paths["ours"])
+    d_rr, ends_rr, _, _ = _read(paths["ours_rerender"])
+    starts_rr = np.concatenate([[0], ends_rr[:-1]])
+    for i, d in zip(extra, (0, 1)):
+        e, orig, s = rr[i], rr[i - 1], demos[d][3]
+        assert int(e["rec/aug_source_episode"]) == d and int(e["rec/aug_id"]) == 0
+        assert int(e["rec/aug_splice_index"]) == s and int(e["step"]) == -1
+        for k in e:
+            if k != "camera0_rgb" and not k.startswith("rec/") and k != "step":
+                np.testing.assert_array_equal(e[k], orig[k], err_msg=k)
+        assert (np.abs(e["camera0_rgb"][:s].astype(int) - 90) <= 3).all()
+        assert not np.array_equal(e["camera0_rgb"][:s], orig["camera0_rgb"][:s])
+        o0 = starts_rr[i - 1]
+        assert all(chunks_rr[starts_rr[i] + t] == chunks_rr[o0 + t] for t in range(s, len(e["camera0_rgb"])))
+    assert chunks_rr[: ends_rr[0]] == chunks_ours[: ends_rr[0]]
+    # the policy dataset: its tail is the source's; without re-sampled tails only its approach is sampled
+    task = TaskConfig(dataset_path=str(paths["ours_rerender"]), image_size=S, obs_down_sample_steps=1,
+                      val_ratio=0.0, sample_replayed_tails=False)
+    from umi_aug.data import ReplayBuffer
+
+    with ReplayBuffer.open(paths["ours_rerender"]) as b:
+        first, source = replayed_tail_first_sample(b, paths["ours_rerender"], task)
+    assert list(source[extra]) == [0, 2] and (first[extra] > 0).all()
+    ds = UmiPolicyDataset(paths["ours_rerender"], task, split="all")
+    ep_of = np.searchsorted(ends_rr, ds.indices[:, 0], side="right")
+    for i in extra:
+        cur = ds.indices[ep_of == i, 0] - starts_rr[i]
+        assert len(cur) > 0 and cur.max() < first[i] and cur.min() == 0
+    # a data-size cut keeps them (every episode of the first demos, as stored)
+    cut = tmp_path / "cut.zarr.zip"
+    subset_variant(paths["ours_rerender"], cut, 1, progress=False)
+    assert [int(e["rec/aug_mode"]) for e in _episodes(cut)].count(RERENDER_MODE_CODE) == 1
+    with pytest.raises(Exception, match="needs render_new"):
+        write_variant("ours_rerender", src, tmp_path / "x.zarr.zip", 2, progress=False)

@@ -583,8 +583,9 @@ def gt_render_function(assets: SquareAssets):
 
 
 def spartn_render_function(assets: SquareAssets):
-    """``render_new`` of :func:`umi_aug.square.variants.write_variant` for ``spartn``: the demo's scene
-    model rendered at the perturbed poses with the gripper of the demo's frames overlaid (as ``ours``)."""
+    """``render_new`` of :func:`umi_aug.square.variants.write_variant` for ``spartn`` (and ``ours_rerender``): the
+    demo's scene model rendered at the given (perturbed, or the demo's own) poses with the gripper of the demo's
+    frames ``info["overlay_rows"]`` overlaid (as ``ours``)."""
     def render_new(episode: int, info: dict[str, Any]) -> np.ndarray:
         h = assets.for_demo(int(info["source"]))
         rendered = np.stack([render_view(h, T) for T in np.asarray(info["T_world_cam"])])

@@ -358,7 +358,7 @@ def _step_variant(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
         return subset_variant(variant_path(cfg, big), variant_path(cfg, cell), n)  # same episodes, not re-rendered
     ours = export_path(cfg, cell["theta"])
     render_new, close = None, None
-    if v in ("gt_render", "spartn", "ours_spartn"):
+    if v in ("gt_render", "spartn", "ours_spartn", "ours_rerender"):
         assets = prepare_square(cfg.demos_dir, cfg.out / "work", _augment_config(cfg, cfg.theta_deg),
                                 SquareInput(episodes=tuple(range(max(cfg.sizes))), scene=dict(cfg.scene)))
         render_new = gt_render_function(assets) if v == "gt_render" else spartn_render_function(assets)

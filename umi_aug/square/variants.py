@@ -17,6 +17,14 @@ source demos, trajectories and bytes wherever they are meant to:
   current pose, targets 1… = the original trajectory — the corrective label back onto the demo. Each short episode
   is ONE training sample, that step (``meta/umi_aug_sample_step``, read by the policy dataset). SPARTN's exact
   magnitudes are not public (``../shared/spec/eval_and_deploy.md`` §5); these are ours and configurable.
+* ``ours_rerender`` — not a variant of the paper: ``ours`` (every episode, as exported) + for each source demo one
+  more episode, the demo itself with its pre-splice frames ``0..s-1`` RENDERED by the same 3DGS scene model at the
+  demo's own poses, with the gripper of the same frames overlaid (``render_new``, as ``spartn``'s), the rest copied
+  (records: ``aug_mode`` :data:`RERENDER_MODE_CODE`, ``aug_id`` 0, the demo as ``aug_source_episode``, splice
+  ``s``: so ``task.sample_replayed_tails=false`` leaves out its replayed tail as an augmented episode's). Every
+  original approach frame then exists twice with the same labels, once as recorded and once as our renders show
+  it: paired examples of the two looks (issue #29: ``ours`` fits its renders at the augmented starts and errs twice
+  as much on the simulator's frames of the same episodes, and the reverse for ``gt_render``).
 * ``ours_spartn`` — not a variant of the paper: ``ours`` (every episode, as exported) + ``spartn``'s perturbed
   samples of the same demos, episode for episode the same bytes as each alone. It tells whether the two add up:
   cone starts that cover where the evaluation begins, and corrections back onto the demo's path near it.
@@ -44,9 +52,12 @@ from umi_aug.geometry import pos_rotvec_to_pose, so3_exp
 from umi_aug.geometry.umi import camera_poses_from_tcp_poses, tcp_poses_from_camera_poses
 
 __all__ = ["VARIANTS", "SPARTN_VARIANTS", "SpartnConfig", "write_variant", "subset_variant", "action_only_sources",
-           "spartn_perturbation", "VARIANT_ATTR"]
+           "spartn_perturbation", "VARIANT_ATTR", "RERENDER_MODE_CODE"]
 
-VARIANTS: tuple[str, ...] = ("none", "ours", "gt_render", "action_only", "spartn", "ours_spartn")
+VARIANTS: tuple[str, ...] = ("none", "ours", "gt_render", "action_only", "spartn", "ours_spartn", "ours_rerender")
+#: ``meta/aug_mode`` of an ``ours_rerender`` episode (a source demo re-rendered at its own poses; the exporter's
+#: modes are 0 original, 1 freespace, 2 obstacle: :data:`umi_aug.augment.plan.MODE_CODES`).
+RERENDER_MODE_CODE: int = 3
 #: The variants that add SPARTN's perturbed samples.
 SPARTN_VARIANTS: tuple[str, ...] = ("spartn", "ours_spartn")
 VARIANT_ATTR = "umi_aug_variant"
@@ -149,7 +160,8 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
         render_new: ``gt_render``: ``(episode, info) -> [s, S, S, 3]``, the frames ``0..s-1`` of an augmented
             episode (``info``: its ``T_world_cam`` [N, 4, 4], ``gripper_width`` [N], ``splice`` = ``n_new`` = s,
             ``source`` demo); ``spartn`` / ``ours_spartn``: ``(source episode, info) -> [K, S, S, 3]`` frames at
-            ``info["T_world_cam"]`` ([K, 4, 4]) with the gripper of the demo's frames ``info["overlay_rows"]`` [K].
+            ``info["T_world_cam"]`` ([K, 4, 4]) with the gripper of the demo's frames ``info["overlay_rows"]`` [K]
+            of source demo ``info["source"]``; ``ours_rerender``: the same, at the demo's own poses ``0..s-1``.
             :func:`square_render_functions` makes both for a square demo folder.
         spartn: :class:`SpartnConfig` (``spartn`` and ``ours_spartn`` only).
         label: the variant name recorded in the output (default ``variant``; :func:`subset_variant`).
@@ -161,7 +173,7 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
     """
     if variant not in VARIANTS:
         raise AugmentError(f"write_variant: variant {variant!r}; expected one of {VARIANTS}")
-    if (variant == "gt_render" or variant in SPARTN_VARIANTS) and render_new is None:
+    if (variant in ("gt_render", "ours_rerender") or variant in SPARTN_VARIANTS) and render_new is None:
         raise AugmentError(f"write_variant({variant}): needs render_new (the frames it renders)")
     if Path(out_path).resolve() == Path(ours_path).resolve():
         raise AugmentError(f"write_variant({variant}): out_path {out_path} is the source export itself; choose "
@@ -196,7 +208,7 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
             low = _lowdim(src, rows)
             s = int(splice[e])
             info = {"rows": rows, "splice": s, "source": int(src_ep[e])}
-            if aug_id[e] < 0 or variant in ("none", "ours", "ours_spartn"):
+            if aug_id[e] < 0 or variant in ("none", "ours", "ours_spartn", "ours_rerender"):
                 _add(buf, src, low, np.zeros((0,) + src[IMAGE_KEY].shape[1:], np.uint8), rows, record)
             elif variant == "action_only":  # the original frames' stored chunks, copied (no re-encode)
                 o = int(src_ep[e])
@@ -213,6 +225,11 @@ def write_variant(variant: str, ours_path: str | os.PathLike, out_path: str | os
                 summary["frames_new"] += s
             summary["episodes"] += 1
             summary["augmented"] += int(aug_id[e] >= 0)
+            if variant == "ours_rerender" and aug_id[e] == -1:  # a source demo: it again, as our renders show it
+                summary["frames_new"] += _rerendered_episode(buf, src, low, rows, s, int(src_ep[e]), render_new)
+                steps.append(-1)
+                summary["episodes"] += 1
+                summary["augmented"] += 1
             if variant in SPARTN_VARIANTS and aug_id[e] == -1:  # a source demo: its perturbed samples
                 summary["frames_new"] += _spartn_episodes(buf, src, e, rows, s, spartn or SpartnConfig(),
                                                           render_new, summary, steps)
@@ -238,6 +255,23 @@ def subset_variant(variant_path: str | os.PathLike, out_path: str | os.PathLike,
         raise AugmentError(f"{variant_path}: no root attribute '{VARIANT_ATTR}' (not written by write_variant)")
     summary = write_variant("ours", variant_path, out_path, n_demos, progress=progress, label=attrs["variant"])
     return summary | {"subset_of": str(variant_path)}
+
+
+def _rerendered_episode(buf, src, low: dict[str, np.ndarray], rows: np.ndarray, splice: int, source: int,
+                        render_new) -> int:
+    """Append source demo ``source`` (export rows ``rows``, low-dim ``low``) again with its frames ``0..splice-1``
+    from ``render_new`` at its own camera poses and the gripper of the same frames; returns the frames rendered."""
+    path = _camera_path(src, low)
+    k = np.arange(splice)
+    frames = np.asarray(render_new(source, {"T_world_cam": path["T_world_cam"][k], "overlay_rows": k,
+                                            "source": source, "rows": rows, "splice": splice}))
+    if frames.shape[0] != splice:
+        raise AugmentError(f"write_variant(ours_rerender): render_new gave {frames.shape[0]} frames for demo "
+                           f"{source}'s {splice} pre-splice frames")
+    record = {"aug_source_episode": source, "aug_mode": RERENDER_MODE_CODE, "aug_id": 0, "aug_seed": 0,
+              "aug_attempts": 1, "aug_splice_index": splice, "aug_job": -1}
+    _add(buf, src, low, frames, rows[splice:], record)
+    return splice
 
 
 def _spartn_episodes(buf, src, e: int, rows: np.ndarray, splice: int, cfg: SpartnConfig, render_new,
