@@ -1,5 +1,6 @@
 import logging
 
+import numpy as np
 import pytest
 import torch
 
@@ -321,3 +322,45 @@ def test_vit_b16_output_matches_umi():
     assert enc.output_dim == 1568
     with torch.no_grad():
         assert enc(_obs(1, 224)).shape == (1, 1568)
+
+
+@pytest.mark.parametrize("sigma_max", [0.4, 1.0, 2.5])
+def test_random_blur_matches_the_reference(rng, sigma_max):
+    """The separable blur equals the per-pixel 2-D reference on fresh random images, for per-sample sigmas
+    including 0 (the identity), the largest one and tiny ones; the T frames of a sample share it; NaN never
+    passes; it keeps an image's mean away from the border; a kernel wider than the image is refused."""
+    from umi_aug.policy.image_aug import _random_gaussian_blur_reference, blur_sigmas, random_gaussian_blur
+
+    B, T, S = 5, 2, 11
+    img = torch.from_numpy(rng.uniform(0, 1, (B, T, 3, S, S))).to(torch.float32)
+    sig = torch.tensor([0.0, 1e-4, sigma_max / 3, sigma_max, float(rng.uniform(0, sigma_max))])
+    radius = max(1, int(np.ceil(3 * sigma_max)))
+    got = random_gaussian_blur(img, sigma_max, sigmas=sig)
+    want = _random_gaussian_blur_reference(img, sig, radius)
+    assert torch.isfinite(got).all() and got.shape == img.shape and got.dtype == img.dtype
+    assert torch.allclose(got.to(torch.float64), want, atol=2e-6)
+    assert torch.allclose(got[:2], img[:2], atol=1e-6)  # sigma 0 (and ~0): the image itself
+    assert not torch.allclose(got[3], img[3], atol=1e-2)
+    flat = torch.full((1, 1, 3, S, S), 0.3)
+    assert torch.allclose(random_gaussian_blur(flat, sigma_max, sigmas=torch.tensor([sigma_max])), flat, atol=1e-6)
+    g = torch.Generator().manual_seed(3)
+    s = blur_sigmas(1000, sigma_max, g)
+    assert float(s.min()) >= 0 and float(s.max()) <= sigma_max and abs(float(s.mean()) - sigma_max / 2) < 0.05
+    same = torch.cat([img[:1, :1], img[:1, :1]], dim=1)  # two equal frames stay equal
+    out = random_gaussian_blur(same, sigma_max, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(out[:, 0], out[:, 1])
+    with pytest.raises(ValueError, match="needs a"):
+        random_gaussian_blur(img[:, :, :, :4, :4], 2.0)
+
+
+def test_encoder_blurs_in_training_only():
+    torch.manual_seed(0)
+    enc = ObsEncoder(_meta(), EncoderConfig(**TINY_VIT, crop_ratio=1.0, color_jitter=[], blur_sigma_max=1.5))
+    obs = _obs()
+    enc.eval()
+    m, s = torch.tensor(CLIP_MEAN)[:, None, None], torch.tensor(CLIP_STD)[:, None, None]
+    assert torch.allclose(enc.preprocess(obs["camera0_rgb"]), (obs["camera0_rgb"] - m) / s)
+    enc.train()
+    enc.generator = torch.Generator().manual_seed(0)
+    pre = enc.preprocess(obs["camera0_rgb"])
+    assert not torch.allclose(pre, (obs["camera0_rgb"] - m) / s, atol=1e-3)

@@ -88,6 +88,10 @@ def test_regression_settings_are_checked(dataset_path, tmp_path):
     cfg.policy.action_head = "diffusion"
     with pytest.raises(PolicyError, match="task.action_horizon"):
         check_config(cfg)
+    cfg = _regression_config(dataset_path, tmp_path)
+    cfg.policy.encoder.blur_sigma_max = 5.0
+    with pytest.raises(PolicyError, match=r"policy.encoder.blur_sigma_max"):
+        check_config(cfg)
     for field, value, match in [("action_head", "transformer", "policy.action_head"),
                                 ("regression_loss", "huber", "policy.regression_loss"),
                                 ("head_hidden_dims", [64, 0], "policy.head_hidden_dims")]:

@@ -111,6 +111,9 @@ class EncoderConfig:
     crop_ratio: float = 0.95
     #: train-only colour jitter (brightness, contrast, saturation, hue) as torchvision's ColorJitter; [] = off
     color_jitter: List[float] = field(default_factory=lambda: [0.3, 0.4, 0.5, 0.08])
+    #: train-only Gaussian blur, std uniform in [0, blur_sigma_max] pixels per sample (image_aug.random_gaussian_blur:
+    #: 3DGS renders are softer than camera frames, issue #29); 0 = off (UMI)
+    blur_sigma_max: float = 0.0
     # ---- CLIP ViT (ignored for resnet); defaults = ViT-B/16 ----
     vit_hidden_size: int = 768
     vit_layers: int = 12
@@ -323,6 +326,8 @@ def check_config(cfg: TrainConfig) -> None:
         bad("policy.encoder.image_norm", p.encoder.image_norm, "expected 'clip', 'imagenet' or 'none'")
     if not 0.0 < p.encoder.crop_ratio <= 1.0:
         bad("policy.encoder.crop_ratio", p.encoder.crop_ratio, "must be in (0, 1]")
+    if not 0.0 <= float(p.encoder.blur_sigma_max) <= 4.0:
+        bad("policy.encoder.blur_sigma_max", p.encoder.blur_sigma_max, "must be in [0, 4] pixels")
     if len(p.encoder.color_jitter) not in (0, 4):
         bad("policy.encoder.color_jitter", p.encoder.color_jitter, "expected [] or [brightness, contrast, saturation, hue]")
     if p.encoder.resnet_pool not in RESNET_POOLS:

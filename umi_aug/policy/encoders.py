@@ -31,7 +31,7 @@ from umi_aug.errors import PolicyError
 from umi_aug.policy.config import EncoderConfig
 from umi_aug.policy.image_aug import (
     CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD, center_crop_resize, color_jitter, normalize_image,
-    random_crop_resize,
+    random_crop_resize, random_gaussian_blur,
 )
 
 __all__ = ["ObsEncoder", "ClipVitBackbone", "ResNetBackbone", "load_weights_file", "timm_clip_to_hf",
@@ -374,12 +374,14 @@ class ObsEncoder(nn.Module):
 
     def preprocess(self, img: torch.Tensor) -> torch.Tensor:
         """[B, T, 3, S, S] in [0, 1] → cropped (random in training, centred in evaluation: the same scale),
-        jittered (training only) and normalised images."""
+        jittered and blurred (training only, when configured) and normalised images."""
         if self.cfg.crop_ratio < 1.0:
             img = (random_crop_resize(img, self.cfg.crop_ratio, self.generator) if self.training
                    else center_crop_resize(img, self.cfg.crop_ratio))
         if self.training and self.cfg.color_jitter:
             img = color_jitter(img, *self.cfg.color_jitter, generator=self.generator)
+        if self.training and self.cfg.blur_sigma_max > 0:
+            img = random_gaussian_blur(img, self.cfg.blur_sigma_max, generator=self.generator)
         if self._norm is not None:
             img = normalize_image(img, *self._norm)
         return img

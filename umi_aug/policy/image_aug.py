@@ -7,19 +7,25 @@
 * :func:`color_jitter`: torchvision ``ColorJitter(brightness, contrast, saturation, hue)`` semantics — factors
   drawn uniformly from ``[1-b, 1+b]``, ``[1-c, 1+c]``, ``[1-s, 1+s]``, hue shift from ``[-h, h]`` — applied in a
   random order; factors are drawn per sample (UMI's call on a (B·T) batch draws one set for the whole batch).
+* :func:`random_gaussian_blur`: a Gaussian blur of standard deviation drawn uniformly from ``[0, sigma_max]``
+  pixels per sample (separable, reflect padding); :func:`_random_gaussian_blur_reference` is the slow, per-image
+  2-D reference beside it. Not UMI's: a lever against the look of 3DGS renders, which are softer than camera
+  frames (issue #29).
 * :func:`normalize_image`: CLIP / ImageNet mean-std.
 
-The encoder applies the random crop and jitter in training mode and the centre crop in evaluation mode; the T
-frames of one sample share the same crop and jitter.
+The encoder applies the random crop, jitter and blur in training mode and the centre crop in evaluation mode; the T
+frames of one sample share the same crop, jitter and blur.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
 
 __all__ = ["CLIP_MEAN", "CLIP_STD", "IMAGENET_MEAN", "IMAGENET_STD", "random_crop_resize", "center_crop_resize",
-           "crop_side", "color_jitter",
+           "crop_side", "color_jitter", "random_gaussian_blur", "blur_sigmas",
            "normalize_image", "rgb_to_hsv", "hsv_to_rgb"]
 
 #: OpenAI CLIP pre-processing constants (``CLIPImageProcessor`` image_mean / image_std).
@@ -178,3 +184,62 @@ def color_jitter(img: torch.Tensor, brightness: float, contrast: float, saturati
     for k in torch.randperm(len(ops), generator=generator).tolist():
         img = ops[k](img)
     return img
+
+
+def blur_sigmas(batch: int, sigma_max: float, generator: torch.Generator | None = None) -> torch.Tensor:
+    """[B] blur standard deviations (pixels), uniform in ``[0, sigma_max]`` (the draws of
+    :func:`random_gaussian_blur`)."""
+    return torch.rand(batch, generator=generator) * float(sigma_max)
+
+
+def _gaussian_kernels(sigmas: torch.Tensor, radius: int) -> torch.Tensor:
+    """[B, 2r+1] normalised 1-D Gaussian kernels; sigma 0 (or below 1e-3) gives the identity (a unit impulse)."""
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    s = sigmas.to(torch.float64).clamp_min(1e-3)[:, None]
+    k = torch.exp(-0.5 * (x[None] / s) ** 2)
+    return k / k.sum(dim=1, keepdim=True)
+
+
+def random_gaussian_blur(img: torch.Tensor, sigma_max: float, generator: torch.Generator | None = None,
+                         sigmas: torch.Tensor | None = None) -> torch.Tensor:
+    """Blur each sample (its T frames alike) with a Gaussian of std ``sigma`` pixels, ``sigma`` ~ U[0, sigma_max]
+    (:func:`blur_sigmas`; or the given ``sigmas`` [B]); separable, reflect padding.
+
+    Args:
+        img: Tensor,  # [B, T, C, H, W] in [0, 1]
+    Returns:
+        Tensor,  # [B, T, C, H, W], same dtype
+    """
+    B, T, C, H, W = img.shape
+    if sigmas is None:
+        sigmas = blur_sigmas(B, sigma_max, generator)
+    radius = max(1, int(math.ceil(3.0 * float(sigma_max))))
+    if radius >= min(H, W):
+        raise ValueError(f"random_gaussian_blur: sigma_max {sigma_max} px needs a {2 * radius + 1}-pixel kernel, "
+                         f"more than the {H}x{W} image")
+    k = _gaussian_kernels(sigmas, radius).to(img.dtype)  # [B, K]
+    w = k.repeat_interleave(T * C, dim=0)  # one kernel per (sample, frame, channel) plane
+    x = img.reshape(1, B * T * C, H, W)
+    x = F.conv2d(F.pad(x, (radius, radius, 0, 0), mode="reflect"), w[:, None, None, :], groups=B * T * C)
+    x = F.conv2d(F.pad(x, (0, 0, radius, radius), mode="reflect"), w[:, None, :, None], groups=B * T * C)
+    return x.reshape(B, T, C, H, W)
+
+
+def _random_gaussian_blur_reference(img: torch.Tensor, sigmas: torch.Tensor, radius: int) -> torch.Tensor:
+    """Slow reference of :func:`random_gaussian_blur`: each plane convolved with its full 2-D Gaussian kernel,
+    pixel by pixel, reflect-padded (float64)."""
+    B, T, C, H, W = img.shape
+    out = torch.empty(img.shape, dtype=torch.float64)
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    for b in range(B):
+        s = max(float(sigmas[b]), 1e-3)
+        g = torch.exp(-0.5 * (x / s) ** 2)
+        k2 = torch.outer(g, g)
+        k2 = k2 / k2.sum()
+        for t in range(T):
+            for c in range(C):
+                p = F.pad(img[b, t, c].to(torch.float64)[None, None], (radius,) * 4, mode="reflect")[0, 0]
+                for i in range(H):
+                    for j in range(W):
+                        out[b, t, c, i, j] = (p[i:i + 2 * radius + 1, j:j + 2 * radius + 1] * k2).sum()
+    return out
