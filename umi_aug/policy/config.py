@@ -112,7 +112,8 @@ class EncoderConfig:
     #: train-only colour jitter (brightness, contrast, saturation, hue) as torchvision's ColorJitter; [] = off
     color_jitter: List[float] = field(default_factory=lambda: [0.3, 0.4, 0.5, 0.08])
     #: train-only Gaussian blur, std uniform in [0, blur_sigma_max] pixels per sample (image_aug.random_gaussian_blur:
-    #: 3DGS renders are softer than camera frames, issue #29); 0 = off (UMI)
+    #: 3DGS renders are softer than camera frames, issue #29); 0 = off (UMI). On square at 84², 1.0 made the
+    #: policy grasp worse (15/100 against 32 in distribution, docs/square_learning.md §2e)
     blur_sigma_max: float = 0.0
     # ---- CLIP ViT (ignored for resnet); defaults = ViT-B/16 ----
     vit_hidden_size: int = 768
