@@ -349,7 +349,7 @@ def test_random_blur_matches_the_reference(rng, sigma_max):
     same = torch.cat([img[:1, :1], img[:1, :1]], dim=1)  # two equal frames stay equal
     out = random_gaussian_blur(same, sigma_max, generator=torch.Generator().manual_seed(1))
     assert torch.equal(out[:, 0], out[:, 1])
-    with pytest.raises(ValueError, match="needs a"):
+    with pytest.raises(PolicyError, match="needs a"):
         random_gaussian_blur(img[:, :, :, :4, :4], 2.0)
 
 

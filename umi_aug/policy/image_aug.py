@@ -24,6 +24,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from umi_aug.errors import PolicyError
+
 __all__ = ["CLIP_MEAN", "CLIP_STD", "IMAGENET_MEAN", "IMAGENET_STD", "random_crop_resize", "center_crop_resize",
            "crop_side", "color_jitter", "random_gaussian_blur", "blur_sigmas",
            "normalize_image", "rgb_to_hsv", "hsv_to_rgb"]
@@ -215,7 +217,7 @@ def random_gaussian_blur(img: torch.Tensor, sigma_max: float, generator: torch.G
         sigmas = blur_sigmas(B, sigma_max, generator)
     radius = max(1, int(math.ceil(3.0 * float(sigma_max))))
     if radius >= min(H, W):
-        raise ValueError(f"random_gaussian_blur: sigma_max {sigma_max} px needs a {2 * radius + 1}-pixel kernel, "
+        raise PolicyError(f"random_gaussian_blur: sigma_max {sigma_max} px needs a {2 * radius + 1}-pixel kernel, "
                          f"more than the {H}x{W} image")
     k = _gaussian_kernels(sigmas, radius).to(img.dtype)  # [B, K]
     w = k.repeat_interleave(T * C, dim=0)  # one kernel per (sample, frame, channel) plane
