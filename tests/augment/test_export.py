@@ -139,6 +139,58 @@ def test_export_refuses_another_configuration(clean_export, aug_session, aug_wor
                work_dir=aug_work, progress=False, pictures=False)
 
 
+def test_rerender_originals_adds_each_demo_again_with_its_approach_rendered(clean_export, aug_session, aug_work,
+                                                                            tmp_path):
+    """``rerender_originals``: per augmentable demo one more episode ahead of its augmented ones (records: mode 3,
+    ``aug_id`` 0, its contact frame as splice), whose low-dim rows are the original's exactly, whose frames from
+    the splice on are the original's stored chunks, and whose approach frames are the scene model's renders at the
+    demo's own poses (JPEG-XL decoded: near the render, not the recorded frame); the augmented episode of the same
+    job is the one exported without it; the policy dataset leaves its replayed tail out."""
+    from umi_aug.augment import export, prepare_session, read_episode_records
+    from umi_aug.augment.plan import MODE_CODES, rerender_episode
+    from umi_aug.augment.render import render_episode_frames
+    from umi_aug.data import ReplayBuffer, validate_replay_buffer
+    from umi_aug.policy.config import TaskConfig
+    from umi_aug.policy.dataset import first_tail_only_step, replayed_tail_first_sample
+
+    cfg = small_config(mode="freespace", n_per_demo=1, rerender_originals=True)
+    out = tmp_path / "rr.zarr"
+    s = export(aug_session, out, cfg, work_dir=aug_work, progress=False, pictures=False)
+    assert (s.n_original, s.n_rerendered, s.n_augmented, s.n_failed, s.n_jobs) == (1, 1, 1, 0, 2)
+    assert validate_replay_buffer(out).n_episodes == 3
+    rec = read_episode_records(out)
+    assert rec["aug_mode"].tolist() == [0, MODE_CODES["rerender"], MODE_CODES["freespace"]]
+    assert rec["aug_id"].tolist() == [-1, 0, 0] and rec["aug_job"].tolist() == [-1, 0, 1]
+    assets = prepare_session(aug_session, aug_work, cfg, progress=False)
+    c = int(assets.demos[0].contact_index)
+    assert rec["aug_splice_index"][1] == c == rec["aug_splice_index"][0]
+    with ReplayBuffer.open(out) as buf, ReplayBuffer.open(aug_session / "dataset.zarr.zip") as src, \
+            ReplayBuffer.open(clean_export[0]) as clean:
+        orig, again = src.get_episode(0), buf.get_episode(1)
+        for k in orig:
+            if k != "camera0_rgb":
+                assert again[k].dtype == orig[k].dtype and np.array_equal(again[k], orig[k]), k
+        assert np.array_equal(again["camera0_rgb"][c:], orig["camera0_rgb"][c:])
+        sl_b, sl_s = buf.get_episode_slice(1), src.get_episode_slice(0)
+        for i in (c, sl_s.stop - sl_s.start - 1):  # the tail's chunks copied as stored
+            assert (buf["camera0_rgb"].store[buf["camera0_rgb"]._chunk_key((sl_b.start + i, 0, 0, 0))]
+                    == src["camera0_rgb"].store[src["camera0_rgb"]._chunk_key((sl_s.start + i, 0, 0, 0))])
+        rendered = render_episode_frames(assets, rerender_episode(assets, 0), range(c)).astype(np.float64)
+        got = again["camera0_rgb"][:c].astype(np.float64)
+        to_render = np.abs(got - rendered).mean()
+        to_recorded = np.abs(got - orig["camera0_rgb"][:c]).mean()
+        assert np.isfinite(to_render) and to_render < 3.0 and to_recorded > 2.0 * to_render, (to_render, to_recorded)
+        first_aug, clean_aug = buf.get_episode(2), clean.get_episode(1)  # job (0, freespace, 0) in both
+        for k in first_aug:
+            assert np.array_equal(first_aug[k], clean_aug[k]), k
+        task = TaskConfig(dataset_path=str(out), image_size=SIZE, sample_replayed_tails=False)
+        first, source = replayed_tail_first_sample(buf, out, task)
+    assert source.tolist() == [-1, 0, 0] and first[1] == first_tail_only_step(task, c)
+    with pytest.raises(Exception, match="another configuration"):  # the option is part of the run's key
+        export(aug_session, out, small_config(mode="freespace", n_per_demo=1), work_dir=aug_work, progress=False,
+               pictures=False)
+
+
 def test_cli_parses_into_a_config():
     import argparse
 
@@ -152,7 +204,8 @@ def test_cli_parses_into_a_config():
     cfg = config_from_args(args)
     assert (cfg.mode, cfg.n_per_demo, cfg.seed, cfg.image_size) == ("both", 7, 5, 96)
     assert cfg.obstacle.assets == ("box", "mug") and cfg.splat.iterations == 0
-    assert args.func.__name__ == "cmd_augment"
+    assert args.func.__name__ == "cmd_augment" and not cfg.rerender_originals
+    assert config_from_args(ap.parse_args(["augment", "S", "--out", "o.zarr", "--rerender-originals"])).rerender_originals
 
 
 @pytest.mark.slow  # spawns 2 worker processes (torch + numba imports)

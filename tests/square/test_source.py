@@ -120,6 +120,44 @@ def test_square_export_resamples_or_fails_infeasible_trajectories(square_export,
     assert s.status_counts.get("not executable by the robot", 0) == 2, s.status_counts
 
 
+def test_exporters_rerendered_demo_is_the_study_variants(square_export, tmp_path):
+    """``umi-aug augment --rerender-originals`` on a square folder writes the episode the study measured as
+    ``ours_rerender`` (:func:`umi_aug.square.variants.write_variant`): every low-dim key (the square keys beyond
+    UMI's included) as the original's, the same records, and the same approach frames up to the float rounding
+    of the camera poses (the variant takes them from the exported TCP poses, the exporter from the demo's)."""
+    import dataclasses
+
+    from umi_aug.augment import export
+    from umi_aug.augment.export_store import read_episode_records
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.square.source import SquareInput, SquareSource, prepare_square, spartn_render_function
+    from umi_aug.square.variants import RERENDER_MODE_CODE, write_variant
+
+    demos, ours, cfg, _, root = square_export
+    rr_cfg = dataclasses.replace(cfg, n_per_demo=0, rerender_originals=True)
+    out = tmp_path / "rr.zarr.zip"
+    s = export(demos, out, rr_cfg, work_dir=root / "work", progress=False, pictures=False,
+               source=SquareSource(demos, SquareInput(scene=TINY_SCENE)))
+    assert (s.n_original, s.n_rerendered, s.n_augmented, s.n_failed) == (1, 1, 0, 0)
+    assets = prepare_square(demos, root / "work", cfg, SquareInput(scene=TINY_SCENE), progress=False)
+    variant = tmp_path / "variant.zarr.zip"
+    write_variant("ours_rerender", ours, variant, 1, render_new=spartn_render_function(assets), progress=False)
+    rec_x, rec_v = read_episode_records(out), read_episode_records(variant)
+    e_v = int(np.flatnonzero(rec_v["aug_mode"] == RERENDER_MODE_CODE)[0])
+    for k in ("aug_source_episode", "aug_mode", "aug_id", "aug_splice_index"):
+        assert rec_x[k][1] == rec_v[k][e_v], k
+    c = int(rec_x["aug_splice_index"][1])
+    with ReplayBuffer.open(out) as bx, ReplayBuffer.open(variant) as bv:
+        x, v = bx.get_episode(1), bv.get_episode(e_v)
+    assert sorted(x) == sorted(v)
+    for k in x:
+        if k != "camera0_rgb":
+            assert x[k].dtype == v[k].dtype and np.array_equal(x[k], v[k]), k
+    assert np.array_equal(x["camera0_rgb"][c:], v["camera0_rgb"][c:])
+    diff = np.abs(x["camera0_rgb"][:c].astype(np.int16) - v["camera0_rgb"][:c].astype(np.int16))
+    assert diff.mean() < 0.05 and np.percentile(diff, 99.9) <= 2, (diff.mean(), diff.max())
+
+
 def test_square_demo_folder_errors_name_the_file(tmp_path, square_export):
     from umi_aug.errors import AugmentError
     from umi_aug.square.source import check_square_demos, is_square_demos

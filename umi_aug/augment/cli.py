@@ -64,6 +64,10 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
                    help="existing Ray cluster, e.g. auto or ray://HOST:10001 (default: start a local one); "
                         "--work must then be on a filesystem every node mounts at the same path")
     p.add_argument("--no-original", action="store_true", help="do not copy the original episodes")
+    p.add_argument("--rerender-originals", action="store_true",
+                   help="also write each augmented demo once more with its approach (the frames before the splice) "
+                        "rendered by the scene model at its own poses, labels unchanged: the policy sees the same "
+                        "approach in the camera's and the renders' look (aug_mode 3; docs/square_learning.md §2e)")
     p.add_argument("--jpegxl-effort", default="4", metavar="1..9|default",
                    help="libjxl encoder effort of the new frames (4: ~3x faster than libjxl's default 7 with the "
                         "same PSNR; 'default': the library's own, as UMI's writer)")
@@ -115,7 +119,8 @@ def config_from_args(args: argparse.Namespace):
         obstacle=ObstacleConfig(assets=tuple(args.obstacle)) if args.obstacle else ObstacleConfig(),
         overlay=OverlayConfig(mask=args.mask, mirrors=args.mirrors), include_original=not args.no_original,
         executor=args.executor, workers=args.workers, ray_address=args.ray_address,
-        jpegxl_effort=_effort_arg(getattr(args, "jpegxl_effort", "4")))
+        jpegxl_effort=_effort_arg(getattr(args, "jpegxl_effort", "4")),
+        rerender_originals=bool(getattr(args, "rerender_originals", False)))
 
 
 def _effort_arg(value: str | int | None) -> int | None:

@@ -163,6 +163,11 @@ class AugmentConfig:
         ray_address: an existing Ray cluster (``"auto"``, ``"ray://host:10001"``); None = a local cluster with
             ``workers`` CPUs.
         include_original: copy the original episodes first in the exported dataset.
+        rerender_originals: also write each augmentable demo once more (``meta/aug_mode`` 3, ``aug_id`` 0, ahead
+            of its augmented episodes) with its approach (frames before the splice) rendered by the scene model at
+            the demo's own poses, its labels and the rest of its frames as recorded: a policy then sees the same
+            approach in both looks, the camera's and the renders' (the square study's ``ours_rerender``,
+            ``docs/square_learning.md`` §2e). Off by default.
         jpegxl_effort: libjxl encoder effort (1 fastest .. 9 slowest; None: the library's default, 7) for the
             new frames of a JPEG-XL image array; the exported array's codec config is the source dataset's with
             this ``effort`` (one of UMI's eleven JpegXl keys, read by UMI's codec; decoding does not depend on it,
@@ -192,6 +197,7 @@ class AugmentConfig:
     ray_address: str | None = None
     include_original: bool = True
     jpegxl_effort: int | None = 4
+    rerender_originals: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in (*MODES, "both"):
@@ -218,6 +224,9 @@ class AugmentConfig:
         e = self.jpegxl_effort
         if e is not None and (isinstance(e, bool) or not isinstance(e, int) or not 1 <= e <= 9):
             raise AugmentError(f"AugmentConfig.jpegxl_effort = {e!r}; expected an int in 1..9 or None")
+        for name in ("include_original", "rerender_originals"):
+            if not isinstance(getattr(self, name), bool):
+                raise AugmentError(f"AugmentConfig.{name} = {getattr(self, name)!r}; expected True or False")
         if self.executor not in ("local", "ray"):
             raise AugmentError(f"AugmentConfig.executor = {self.executor!r}; expected 'local' or 'ray'")
         if self.overlay.mask not in ("predefined", "estimated", "auto"):

@@ -23,7 +23,8 @@ class ExportSummary:
     """What :func:`export` did (also written as ``<out>.summary.json``).
 
     Attributes:
-        out_path / work_dir: paths; n_original / n_augmented: episodes in the dataset; n_failed: jobs that
+        out_path / work_dir: paths; n_original / n_augmented: episodes in the dataset; n_rerendered: demos
+        written again with their approach rendered (``rerender_originals``); n_failed: jobs that
         failed after the retry budget; n_resampled: extra attempts over all emitted episodes;
         n_jobs: augmented jobs; resumed_jobs: jobs already done when this run started;
         status_counts: reasons of failed attempts by status; stages: per stage seconds / skipped;
@@ -47,6 +48,7 @@ class ExportSummary:
     episodes_per_s: float = 0.0
     pictures: dict = field(default_factory=dict)
     failures: list = field(default_factory=list)
+    n_rerendered: int = 0
 
 
 class _EpisodeFrames:
@@ -66,13 +68,15 @@ class _EpisodeFrames:
 
 
 def export_pictures(out: Path, assets: SessionAssets, buf, rec: dict, episodes_by_demo: Mapping[int, list]) -> dict:
-    """The export's pictures beside ``out``: a contact sheet of 2 original + 6 augmented episodes (splice frames
-    marked) and, per augmented demo, its planned trajectories (``episodes_by_demo``: demo index → the planned
-    :class:`umi_aug.traj.Episode` list). Returns name → path."""
+    """The export's pictures beside ``out``: a contact sheet of 2 original + 6 augmented episodes (one of them a
+    re-rendered demo, when the export has any; splice frames marked) and, per augmented demo, its planned
+    trajectories (``episodes_by_demo``: demo index → the planned :class:`umi_aug.traj.Episode` list). Returns
+    name → path."""
     pics = {}
     E = buf.n_episodes
     orig = [i for i in range(E) if rec["aug_mode"][i] == 0][:2]
-    augm = [i for i in range(E) if rec["aug_mode"][i] > 0][:6]
+    rerendered = [i for i in range(E) if rec["aug_mode"][i] == MODE_CODES["rerender"]][:1]
+    augm = rerendered + [i for i in range(E) if 0 < rec["aug_mode"][i] != MODE_CODES["rerender"]][:6 - len(rerendered)]
     rows = orig + augm
     if rows:
         frames = [_EpisodeFrames(buf["camera0_rgb"], buf.get_episode_slice(i)) for i in rows]
@@ -100,6 +104,7 @@ def summary_table(summary: ExportSummary) -> Table:
     t.add_column("item")
     t.add_column("value", justify="right")
     for k, v in [("original episodes", summary.n_original), ("augmented episodes", summary.n_augmented),
+                 *([("re-rendered demos", summary.n_rerendered)] if summary.n_rerendered else []),
                  ("failed jobs", summary.n_failed), ("resampled attempts", summary.n_resampled),
                  ("jobs resumed", summary.resumed_jobs), ("new frames rendered", summary.frames_rendered),
                  ("episodes/s (this run)", summary.episodes_per_s)]:

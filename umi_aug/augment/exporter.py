@@ -3,8 +3,9 @@
 Layout: the UMI keys (``robot0_*``, ``camera0_rgb`` at ``S x S``) that UMI's and our trainer read unchanged, plus
 per-episode records as extra ``meta/`` arrays of length E (UMI copies ``meta/`` whole and never indexes them;
 ``data/`` stays UMI's): ``aug_source_episode`` (original demo index), ``aug_mode`` (0 original, 1 freespace,
-2 obstacle — :data:`umi_aug.augment.plan.MODE_CODES`), ``aug_id`` (−1 for originals), ``aug_seed`` (derived
-seed), ``aug_attempts`` (1 = no resampling), ``aug_splice_index`` (first replayed frame), ``aug_job`` (job number).
+2 obstacle, 3 a demo re-rendered — :data:`umi_aug.augment.plan.MODE_CODES`), ``aug_id`` (−1 for originals),
+``aug_seed`` (derived seed), ``aug_attempts`` (1 = no resampling), ``aug_splice_index`` (first replayed frame),
+``aug_job`` (job number).
 Root attribute ``umi_aug_export`` holds the run key, the job list size, failures and progress.
 
 Resumability: jobs run in a fixed order (demo, mode, aug_id) and every one is deterministic on its own. The
@@ -15,7 +16,9 @@ half-written append, the records are cut to the committed episodes, and the run 
 that finished (an episode committed or a failure recorded) — nothing duplicated, nothing lost.
 
 Original episodes are copied as stored (compressed chunks, no re-encoding); new frames are JPEG-XL encoded by the
-replay buffer's UMI codec.
+replay buffer's UMI codec. With ``rerender_originals`` each augmentable demo is written once more ahead of its
+augmented episodes (job ``(demo, "rerender", 0)``): its low-dim rows exactly as stored, its frames before the
+splice rendered at its own poses (:func:`umi_aug.augment.plan.rerender_episode`), the rest copied as stored.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ from umi_aug.augment.export_store import (ATTR, IMAGE_KEY, RECORD_KEYS, add_reco
                                           count_episodes, create_store, export_progress, not_this_runs_output,
                                           open_export_store, raw_copy_ok, stored_key, working_path)
 from umi_aug.augment.plan import (MODE_CODES, PlannedEpisode, episode_seed, first_attempt_obstacle_assets,
-                                  try_plan_episode)
+                                  rerender_episode, try_plan_episode)
 from umi_aug.augment.render import render_episode_frames
 from umi_aug.augment.session_assets import SessionAssets
 from umi_aug.augment.sources import InputSource, open_source
@@ -62,14 +65,19 @@ __all__ = ["FAST_PATHS", "export", "export_jobs"]
 
 log = logging.getLogger(__name__)
 
+#: The mode of a demo's re-rendered copy (:attr:`AugmentConfig.rerender_originals`).
+RERENDER = "rerender"
 #: Speed-ups of :func:`export` (issue #17), each with its reference path kept (``fast_paths=()``).
 FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead", "obstacle_tiles", "encode_in_task", "overlay_pixels")
 
 
 def export_jobs(assets: SessionAssets) -> list[tuple[int, str, int]]:
-    """The run's augmented jobs ``(demo_index, mode, aug_id)`` in export order."""
+    """The run's augmented jobs ``(demo_index, mode, aug_id)`` in export order: per augmentable demo, its
+    re-rendered copy ``(d, "rerender", 0)`` first when ``cfg.rerender_originals``, then its episodes per mode."""
     cfg = assets.cfg
-    return [(d, m, a) for d in assets.augmentable for m in cfg.modes for a in range(cfg.n_per_demo)]
+    first = [(RERENDER, 0)] if cfg.rerender_originals else []
+    return [(d, m, a) for d in assets.augmentable
+            for m, a in first + [(m, a) for m in cfg.modes for a in range(cfg.n_per_demo)]]
 
 
 def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
@@ -85,7 +93,9 @@ def _run_key(cfg: AugmentConfig, fingerprint: str) -> str:
                        *(() if cfg.jpegxl_effort is None else (("jpegxl_effort", cfg.jpegxl_effort),)),
                        # early termination changes the new frames; the default keeps earlier exports' keys
                        *(() if cfg.render_min_transmittance == DEFAULT_RENDER_MIN_TRANSMITTANCE
-                         else (("render_min_transmittance", cfg.render_min_transmittance),)))
+                         else (("render_min_transmittance", cfg.render_min_transmittance),)),
+                       # the re-rendered demos add episodes; off keeps earlier exports' keys
+                       *((("rerender_originals", True),) if cfg.rerender_originals else ()))
 
 
 @dataclass
@@ -115,15 +125,18 @@ def _job_task(args) -> _JobResult:
                                        f"none with the pre-grasp clearance); not augmented"], None, False,
                           0.0, 0.0, scene_s)
     t0 = time.perf_counter()
-    cache = _plan_cache_path(assets, job, key)
-    planned = _load_planned(cache) if cache.exists() else None
-    if planned is None:
-        outcome = try_plan_episode(assets, d, a, m)
-        planned, attempts, reasons = outcome.planned, outcome.attempts, list(outcome.failures)
-        if planned is not None:
-            _save_planned(cache, planned)
+    if m == RERENDER:  # the demo itself: nothing to plan (or cache)
+        planned, attempts, reasons = rerender_episode(assets, d), 1, []
     else:
-        attempts, reasons = planned.attempts, list(planned.failures)
+        cache = _plan_cache_path(assets, job, key)
+        planned = _load_planned(cache) if cache.exists() else None
+        if planned is None:
+            outcome = try_plan_episode(assets, d, a, m)
+            planned, attempts, reasons = outcome.planned, outcome.attempts, list(outcome.failures)
+            if planned is not None:
+                _save_planned(cache, planned)
+        else:
+            attempts, reasons = planned.attempts, list(planned.failures)
     t1 = time.perf_counter()
     frames, copy_tail = None, False
     if planned is not None:
@@ -331,6 +344,11 @@ def _remove_leftover_temporaries(out: Path) -> None:
             remove_tree_atomically(p)
 
 
+def _n_jobs_max(cfg: AugmentConfig, n_aug: int) -> int:
+    """Jobs of ``n_aug`` augmentable demos (:func:`export_jobs`' length when every demo has a splice frame)."""
+    return n_aug * (len(cfg.modes) * cfg.n_per_demo + int(cfg.rerender_originals))
+
+
 def _expected_bytes(src: Path, n_jobs_max: int, n_src_eps: int, include_original: bool) -> int:
     """About the bytes of the output: the input dataset's bytes per episode x the episodes written."""
     per_ep = tree_size(src) / max(1, n_src_eps)
@@ -362,9 +380,9 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
     elif wpath.exists() and stored_key(wpath) != key:
         raise AugmentError(not_this_runs_output(wpath, stored_key(wpath), key))
     if not finished:  # before minutes of compute: the output (and a .zip's working copy) must fit
-        need = _expected_bytes(src_ds, n_aug * len(cfg.modes) * cfg.n_per_demo, n_src, cfg.include_original)
+        need = _expected_bytes(src_ds, _n_jobs_max(cfg, n_aug), n_src, cfg.include_original)
         need = need * (2 if out.name.endswith(".zip") else 1) - tree_size(wpath)
-        check_free_space(out, need, f"writing {out.name} (about {n_aug * len(cfg.modes) * cfg.n_per_demo} new "
+        check_free_space(out, need, f"writing {out.name} (about {_n_jobs_max(cfg, n_aug)} new "
                          f"episodes{' + a .zarr.zip copy of the working store' if out.name.endswith('.zip') else ''})",
                          AugmentError)
     # the obstacle assets the jobs' first attempts draw: a source may fit them beside a long stage
@@ -438,8 +456,9 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
                 if res.copy_tail:  # replayed frames: the original compressed chunks
                     r0 = assets.original.get_episode_slice(d).start + int(ep.source_contact_index)
                     rows = np.arange(r0, r0 + planned.n_frames - planned.splice_index)
-                timings["encode_s"] += append_episode(buf, assets.umi_episode(ep, d), res.frames, src_img, rows,
-                                                      encoded)
+                # a re-rendered demo keeps its own rows exactly (every key its source stores)
+                lowdim = assets.original_lowdim(d) if m == RERENDER else assets.umi_episode(ep, d)
+                timings["encode_s"] += append_episode(buf, lowdim, res.frames, src_img, rows, encoded)
                 timings["write_s"] += time.perf_counter() - t0
             tally = dict(attrs.get("attempt_failures", {}))
             for r in res.reasons:
@@ -506,6 +525,8 @@ def _planned_episodes(assets: SessionAssets, key: str, jobs) -> dict[int, list]:
     """Demo index → the planned trajectories of its finished jobs (from the plan cache), for the pictures."""
     out: dict[int, list] = {}
     for job in jobs:
+        if job[1] == RERENDER:  # the demo's own path, not a planned one
+            continue
         p = _plan_cache_path(assets, job, key)
         pl = _load_planned(p) if p.exists() else None
         if pl is not None:
@@ -520,7 +541,8 @@ def _finish(out: Path, work: Path, assets: SessionAssets, key: str, jobs, resume
         attrs = dict(buf.root.attrs.get(ATTR, {}))
         rec = {k: np.asarray(buf.meta[k][:]) for k in RECORD_KEYS}
         n_orig = int((rec["aug_mode"] == 0).sum())
-        aug = rec["aug_mode"] > 0
+        rerendered = rec["aug_mode"] == MODE_CODES[RERENDER]
+        aug = (rec["aug_mode"] > 0) & ~rerendered
         failures = list(attrs.get("failures", []))
         counts = dict(attrs.get("attempt_failures", {}))
         pics = {}
@@ -533,6 +555,7 @@ def _finish(out: Path, work: Path, assets: SessionAssets, key: str, jobs, resume
     timings["total_s"] = total
     summary = ExportSummary(
         out_path=str(out), work_dir=str(work), n_original=n_orig, n_augmented=int(aug.sum()),
+        n_rerendered=int(rerendered.sum()),
         n_failed=len(failures), n_resampled=int((rec["aug_attempts"][aug] - 1).sum()), n_jobs=len(jobs),
         resumed_jobs=resumed, status_counts=dict(counts),
         stages={k: {"seconds": round(v.seconds, 3), "skipped": v.skipped} for k, v in assets.stages.items()},

@@ -17,21 +17,24 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from umi_aug.errors import AugmentError, ReconError, TrajError
+from umi_aug.geometry import pose_to_pos_rotvec, tcp_poses_from_camera_poses
 from umi_aug.recon.obstacles import sample_obstacle_placement
 from umi_aug.traj import ConvexObstacle
 from umi_aug.traj.generate import finish_batch
 from umi_aug.traj.plan import solve
+from umi_aug.traj.splice import AugmentedEpisode
 
 __all__ = ["MODE_CODES", "episode_seed", "ObstacleRecord", "PlannedEpisode", "PlanOutcome", "plan_episode",
-           "try_plan_episode"]
+           "rerender_episode", "try_plan_episode"]
 
 from umi_aug.augment.obstacle_stage import scaled_obstacle_asset
 from umi_aug.augment.session_assets import SessionAssets
 
 log = logging.getLogger(__name__)
 
-#: Integer code of each episode kind (stored per episode in the exported zarr, ``meta/aug_mode``).
-MODE_CODES: dict[str, int] = {"original": 0, "freespace": 1, "obstacle": 2}
+#: Integer code of each episode kind (stored per episode in the exported zarr, ``meta/aug_mode``): ``rerender`` is a
+#: demo again, its approach rendered by the scene model at its own poses (:func:`rerender_episode`).
+MODE_CODES: dict[str, int] = {"original": 0, "freespace": 1, "obstacle": 2, "rerender": 3}
 #: Height above the support plane (m) below which the placement ignores the reconstructed SDF (at least 2 voxels).
 SUPPORT_BAND_M: float = 0.02
 
@@ -221,6 +224,28 @@ def _report_dict(rep) -> dict:
             v = {kk: float(vv) for kk, vv in v.items()}
         out[k] = v
     return out
+
+
+def rerender_episode(assets: SessionAssets, demo_index: int) -> PlannedEpisode:
+    """Demo ``demo_index`` itself as a :class:`PlannedEpisode` of mode ``"rerender"`` (``aug_id`` 0): its own camera
+    poses, gripper widths and frame count, spliced at its contact frame, so that rendering frames ``0 .. c-1``
+    shows the demo's approach as the scene model renders it (the look of the augmented episodes' new frames) and
+    the frames from ``c`` on are its own. Nothing is planned or drawn: the same for every seed.
+
+    Raises:
+        AugmentError: the demo has no contact frame (:meth:`SessionAssets.demo`).
+    """
+    d = assets.demo(demo_index)
+    c = int(d.contact_index)
+    T_cam = np.asarray(d.T_world_cam, np.float64)
+    width = np.asarray(d.gripper_width, np.float64).reshape(-1)
+    T_tcp = tcp_poses_from_camera_poses(T_cam)
+    actions = np.concatenate([pose_to_pos_rotvec(T_tcp), width[:, None]], axis=1)
+    ts = np.asarray(d.timestamps, np.float64)
+    progress = np.linspace(0.0, 1.0, c + 1) if c > 0 else np.ones(1)
+    ep = AugmentedEpisode(ts - ts[0], T_cam, T_tcp, width, actions, c, progress, c)
+    seed = episode_seed(assets.cfg.seed, demo_index, 0, "rerender")
+    return PlannedEpisode(int(demo_index), d.name, 0, "rerender", seed, 1, ep, {"status": "rerender"})
 
 
 def plan_episode(assets: SessionAssets, demo_index: int, aug_id: int, mode: str) -> PlannedEpisode | None:

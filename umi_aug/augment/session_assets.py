@@ -167,6 +167,14 @@ class SessionAssets:
         lo, hi = int(idx.min()), int(idx.max()) + 1
         return arr[lo:hi][idx - lo]
 
+    def original_lowdim(self, demo_index: int) -> dict[str, np.ndarray]:
+        """Every non-image key of demo ``demo_index``'s original episode, as stored (key → ``[H, ...]`` rows)."""
+        from umi_aug.data import schema  # lazy, start-up: zarr
+
+        buf = self.original
+        sl = buf.get_episode_slice(int(demo_index))
+        return {k: np.asarray(buf[k][sl]) for k in buf.keys() if not schema.is_image_key(k)}
+
     def obstacle_gaussians(self, asset: str):
         """Gaussians of obstacle ``asset`` in its object frame: its ``obstacles/<asset>`` stage, fitted on first
         use (in any process) and read from the cache after."""

@@ -45,6 +45,7 @@ import numpy as np
 from tqdm import tqdm
 
 from umi_aug.augment.export_store import IMAGE_KEY, RECORD_CHUNK, RECORD_KEYS, append_episode, read_episode_records
+from umi_aug.augment.plan import MODE_CODES
 from umi_aug.data import ReplayBuffer, make_umi_episode
 from umi_aug.data.schema import ACTION_KEY, SAMPLE_STEP_KEY
 from umi_aug.errors import AugmentError
@@ -55,9 +56,9 @@ __all__ = ["VARIANTS", "SPARTN_VARIANTS", "SpartnConfig", "write_variant", "subs
            "spartn_perturbation", "VARIANT_ATTR", "RERENDER_MODE_CODE"]
 
 VARIANTS: tuple[str, ...] = ("none", "ours", "gt_render", "action_only", "spartn", "ours_spartn", "ours_rerender")
-#: ``meta/aug_mode`` of an ``ours_rerender`` episode (a source demo re-rendered at its own poses; the exporter's
-#: modes are 0 original, 1 freespace, 2 obstacle: :data:`umi_aug.augment.plan.MODE_CODES`).
-RERENDER_MODE_CODE: int = 3
+#: ``meta/aug_mode`` of an ``ours_rerender`` episode: a source demo re-rendered at its own poses, the exporter's
+#: ``rerender`` code (:data:`umi_aug.augment.plan.MODE_CODES`; ``umi-aug augment --rerender-originals``).
+RERENDER_MODE_CODE: int = MODE_CODES["rerender"]
 #: The variants that add SPARTN's perturbed samples.
 SPARTN_VARIANTS: tuple[str, ...] = ("spartn", "ours_spartn")
 VARIANT_ATTR = "umi_aug_variant"
