@@ -120,6 +120,48 @@ def test_matches_the_offline_export(original, aug_session, aug_assets, tmp_path)
     assert checked >= 3
 
 
+def test_rerendered_demo_samples_match_the_export_and_keep_the_demos_labels(original, aug_session, aug_assets,
+                                                                          tmp_path):
+    """``rerender_fraction``: a slot drawn as a re-rendered demo gives the sample of the export's
+    ``--rerender-originals`` episode at the same step (images up to JPEG-XL), whose labels are the demo's own
+    sample's; the approach frames are renders, not the recorded ones; 0 draws nothing more (the slots of a
+    dataset without it); about that fraction of the slots is drawn."""
+    from umi_aug.augment import RERENDER_MODE, export, read_episode_records
+    from umi_aug.policy.dataset import UmiPolicyDataset
+
+    out = tmp_path / "rr.zarr.zip"
+    export(aug_session, out, small_config(mode="freespace", n_per_demo=1, rerender_originals=True),
+           work_dir=aug_assets.work_dir, progress=False, pictures=False)
+    rec = read_episode_records(out)
+    e = int(np.flatnonzero(rec["aug_mode"] == 3)[0])
+    c = int(rec["aug_splice_index"][e])
+    exported = UmiPolicyDataset(out, _task(), "all", start_pose_noise=0.0)
+    ds = _dataset(original, aug_assets, rerender_fraction=0.5)
+    start = int(exported.episode_ends[e - 1])
+    rows = np.flatnonzero(exported.indices[:, 1] == start)
+    checked = 0
+    for r in rows[[0, min(c // 2, len(rows) - 1), -1]]:
+        cur = int(exported.indices[r, 0]) - start
+        on_the_fly, offline, demo = ds.augmented_sample(0, 0, RERENDER_MODE, cur), exported[int(r)], original[cur]
+        _same({"obs": {k: v for k, v in on_the_fly["obs"].items() if k != "camera0_rgb"},
+               "action": on_the_fly["action"]},
+              {"obs": {k: v for k, v in demo["obs"].items() if k != "camera0_rgb"}, "action": demo["action"]})
+        torch.testing.assert_close(on_the_fly["action"], offline["action"], atol=0, rtol=0)
+        diff = (on_the_fly["obs"]["camera0_rgb"] - offline["obs"]["camera0_rgb"]).abs()
+        psnr = 10 * np.log10(1.0 / max(float((diff ** 2).mean()), 1e-12))
+        assert psnr > 35.0, (cur, psnr)
+        if cur < c - 1:  # every observed frame before the splice: rendered, not recorded
+            to_recorded = (on_the_fly["obs"]["camera0_rgb"] - demo["obs"]["camera0_rgb"]).abs().mean()
+            assert float(to_recorded) > 4 * float(diff.mean()), (cur, float(to_recorded), float(diff.mean()))
+        checked += 1
+    assert checked == 3
+    plain = _dataset(original, aug_assets)
+    assert [plain.slot(j)[:3] for j in range(30)] == [_dataset(original, aug_assets, rerender_fraction=0.0).slot(j)[:3]
+                                                     for j in range(30)]
+    modes = [ds.slot(j)[2] for j in range(400)]
+    assert 150 <= modes.count(RERENDER_MODE) <= 250 and set(modes) == {"freespace", RERENDER_MODE}
+
+
 def test_dataloader_workers_give_the_same_samples(original, aug_assets):
     ds = _dataset(original, aug_assets, ratio=0.2)
     n = len(original)
@@ -161,6 +203,9 @@ def test_bad_settings_are_named(original, aug_assets):
         _dataset(original, aug_assets, ratio=1.0)
     with pytest.raises(PolicyError, match="modes"):
         _dataset(original, aug_assets, modes=("sideways",))
+    for bad in (1.0, -0.1, float("nan")):
+        with pytest.raises(PolicyError, match="rerender_fraction"):
+            _dataset(original, aug_assets, rerender_fraction=bad)
     from umi_aug.policy.dataset import UmiPolicyDataset
 
     other = UmiPolicyDataset(original.path, _task(image_size=SIZE), "train")

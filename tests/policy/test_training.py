@@ -111,7 +111,8 @@ def test_policy_predict_action_interface(dataset_path, tmp_path):
 def test_aug_settings_are_checked(dataset_path, tmp_path):
     with pytest.raises(PolicyError, match="not an augmentation"):
         check_aug(structured_config({"aug": {"name": "nope"}}).aug)
-    for key, value in (("ratio", 1.0), ("ratio", -0.1), ("n_aug_per_demo", 0)):
+    for key, value in (("ratio", 1.0), ("ratio", -0.1), ("n_aug_per_demo", 0), ("rerender_fraction", 1.0),
+                       ("rerender_fraction", float("nan"))):
         cfg = tiny_config(dataset_path, tmp_path)
         cfg.aug.name = "freespace"
         setattr(cfg.aug, key, value)

@@ -377,6 +377,10 @@ class _FakeAugmented:
         self.demos, self.modes, self.n_aug_per_demo, self.seed = [0, 1], ("freespace",), 1000, 0
         self.assets = SimpleNamespace(umi_episode=lambda ep, d: {"robot0_gripper_width": np.full((60, 1), 0.085)})
 
+    def draw(self, rng):
+        return (self.demos[int(rng.integers(len(self.demos)))], int(rng.integers(self.n_aug_per_demo)),
+                self.modes[int(rng.integers(len(self.modes)))])
+
     def planned(self, demo, aug_id, mode):
         from types import SimpleNamespace
 

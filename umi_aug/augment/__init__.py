@@ -29,7 +29,7 @@ _LAZY = {
     "SessionAssets": "session_assets", "DemoInfo": "session_assets", "prepare_session": "sources.session",
     "InputSource": "sources", "open_source": "sources", "register_source": "sources",
     "PlannedEpisode": "plan", "ObstacleRecord": "plan", "MODE_CODES": "plan", "episode_seed": "plan",
-    "plan_episode": "plan",
+    "plan_episode": "plan", "rerender_episode": "plan", "RERENDER_MODE": "plan",
     "render_episode_frames": "render",
     "export": "exporter", "export_jobs": "exporter", "ExportSummary": "export_report", "summary_table": "export_report",
     "read_episode_records": "export_store",

@@ -49,8 +49,8 @@ from umi_aug.augment.export_report import ExportSummary, export_pictures
 from umi_aug.augment.export_store import (ATTR, IMAGE_KEY, RECORD_KEYS, add_records, append_episode,
                                           count_episodes, create_store, export_progress, not_this_runs_output,
                                           open_export_store, raw_copy_ok, stored_key, working_path)
-from umi_aug.augment.plan import (MODE_CODES, PlannedEpisode, episode_seed, first_attempt_obstacle_assets,
-                                  rerender_episode, try_plan_episode)
+from umi_aug.augment.plan import (MODE_CODES, RERENDER_MODE, PlannedEpisode, episode_seed,
+                                  first_attempt_obstacle_assets, rerender_episode, try_plan_episode)
 from umi_aug.augment.render import render_episode_frames
 from umi_aug.augment.session_assets import SessionAssets
 from umi_aug.augment.sources import InputSource, open_source
@@ -65,8 +65,6 @@ __all__ = ["FAST_PATHS", "export", "export_jobs"]
 
 log = logging.getLogger(__name__)
 
-#: The mode of a demo's re-rendered copy (:attr:`AugmentConfig.rerender_originals`).
-RERENDER = "rerender"
 #: Speed-ups of :func:`export` (issue #17), each with its reference path kept (``fast_paths=()``).
 FAST_PATHS: tuple[str, ...] = ("overlay_cache", "encode_ahead", "obstacle_tiles", "encode_in_task", "overlay_pixels")
 
@@ -75,7 +73,7 @@ def export_jobs(assets: SessionAssets) -> list[tuple[int, str, int]]:
     """The run's augmented jobs ``(demo_index, mode, aug_id)`` in export order: per augmentable demo, its
     re-rendered copy ``(d, "rerender", 0)`` first when ``cfg.rerender_originals``, then its episodes per mode."""
     cfg = assets.cfg
-    first = [(RERENDER, 0)] if cfg.rerender_originals else []
+    first = [(RERENDER_MODE, 0)] if cfg.rerender_originals else []
     return [(d, m, a) for d in assets.augmentable
             for m, a in first + [(m, a) for m in cfg.modes for a in range(cfg.n_per_demo)]]
 
@@ -125,7 +123,7 @@ def _job_task(args) -> _JobResult:
                                        f"none with the pre-grasp clearance); not augmented"], None, False,
                           0.0, 0.0, scene_s)
     t0 = time.perf_counter()
-    if m == RERENDER:  # the demo itself: nothing to plan (or cache)
+    if m == RERENDER_MODE:  # the demo itself: nothing to plan (or cache)
         planned, attempts, reasons = rerender_episode(assets, d), 1, []
     else:
         cache = _plan_cache_path(assets, job, key)
@@ -457,7 +455,7 @@ def _export(src: InputSource, out: Path, work: Path, cfg: AugmentConfig, *, resu
                     r0 = assets.original.get_episode_slice(d).start + int(ep.source_contact_index)
                     rows = np.arange(r0, r0 + planned.n_frames - planned.splice_index)
                 # a re-rendered demo keeps its own rows exactly (every key its source stores)
-                lowdim = assets.original_lowdim(d) if m == RERENDER else assets.umi_episode(ep, d)
+                lowdim = assets.original_lowdim(d) if m == RERENDER_MODE else assets.umi_episode(ep, d)
                 timings["encode_s"] += append_episode(buf, lowdim, res.frames, src_img, rows, encoded)
                 timings["write_s"] += time.perf_counter() - t0
             tally = dict(attrs.get("attempt_failures", {}))
@@ -525,7 +523,7 @@ def _planned_episodes(assets: SessionAssets, key: str, jobs) -> dict[int, list]:
     """Demo index → the planned trajectories of its finished jobs (from the plan cache), for the pictures."""
     out: dict[int, list] = {}
     for job in jobs:
-        if job[1] == RERENDER:  # the demo's own path, not a planned one
+        if job[1] == RERENDER_MODE:  # the demo's own path, not a planned one
             continue
         p = _plan_cache_path(assets, job, key)
         pl = _load_planned(p) if p.exists() else None
@@ -541,7 +539,7 @@ def _finish(out: Path, work: Path, assets: SessionAssets, key: str, jobs, resume
         attrs = dict(buf.root.attrs.get(ATTR, {}))
         rec = {k: np.asarray(buf.meta[k][:]) for k in RECORD_KEYS}
         n_orig = int((rec["aug_mode"] == 0).sum())
-        rerendered = rec["aug_mode"] == MODE_CODES[RERENDER]
+        rerendered = rec["aug_mode"] == MODE_CODES[RERENDER_MODE]
         aug = (rec["aug_mode"] > 0) & ~rerendered
         failures = list(attrs.get("failures", []))
         counts = dict(attrs.get("attempt_failures", {}))

@@ -24,8 +24,8 @@ from umi_aug.traj.generate import finish_batch
 from umi_aug.traj.plan import solve
 from umi_aug.traj.splice import AugmentedEpisode
 
-__all__ = ["MODE_CODES", "episode_seed", "ObstacleRecord", "PlannedEpisode", "PlanOutcome", "plan_episode",
-           "rerender_episode", "try_plan_episode"]
+__all__ = ["MODE_CODES", "RERENDER_MODE", "episode_seed", "ObstacleRecord", "PlannedEpisode", "PlanOutcome",
+           "plan_episode", "rerender_episode", "try_plan_episode"]
 
 from umi_aug.augment.obstacle_stage import scaled_obstacle_asset
 from umi_aug.augment.session_assets import SessionAssets
@@ -35,6 +35,8 @@ log = logging.getLogger(__name__)
 #: Integer code of each episode kind (stored per episode in the exported zarr, ``meta/aug_mode``): ``rerender`` is a
 #: demo again, its approach rendered by the scene model at its own poses (:func:`rerender_episode`).
 MODE_CODES: dict[str, int] = {"original": 0, "freespace": 1, "obstacle": 2, "rerender": 3}
+#: The mode of a demo's re-rendered copy (:func:`rerender_episode`).
+RERENDER_MODE = "rerender"
 #: Height above the support plane (m) below which the placement ignores the reconstructed SDF (at least 2 voxels).
 SUPPORT_BAND_M: float = 0.02
 
@@ -244,8 +246,8 @@ def rerender_episode(assets: SessionAssets, demo_index: int) -> PlannedEpisode:
     ts = np.asarray(d.timestamps, np.float64)
     progress = np.linspace(0.0, 1.0, c + 1) if c > 0 else np.ones(1)
     ep = AugmentedEpisode(ts - ts[0], T_cam, T_tcp, width, actions, c, progress, c)
-    seed = episode_seed(assets.cfg.seed, demo_index, 0, "rerender")
-    return PlannedEpisode(int(demo_index), d.name, 0, "rerender", seed, 1, ep, {"status": "rerender"})
+    seed = episode_seed(assets.cfg.seed, demo_index, 0, RERENDER_MODE)
+    return PlannedEpisode(int(demo_index), d.name, 0, RERENDER_MODE, seed, 1, ep, {"status": RERENDER_MODE})
 
 
 def plan_episode(assets: SessionAssets, demo_index: int, aug_id: int, mode: str) -> PlannedEpisode | None:

@@ -14,8 +14,11 @@ disk). Its samples ``0 .. n_original-1`` are the original samples, unchanged; th
 
 Low-dim observations and actions use exactly UMI's sampling and representation code of :mod:`.dataset`, so an
 augmented sample equals the sample the offline export (``umi-aug augment``) gives for the same episode and step
-(images up to the export's JPEG-XL compression). DataLoader workers each keep their own in-memory caches and open
-the session's files lazily (once per process: with persistent workers, once per run).
+(images up to the export's JPEG-XL compression). With ``rerender_fraction`` > 0 that fraction of the augmented
+slots draws a demo's re-rendered copy instead (:func:`umi_aug.augment.rerender_episode`: the demo's own poses and
+labels, its approach rendered by the scene model — the export's ``--rerender-originals`` episode). DataLoader
+workers each keep their own in-memory caches and open the session's files lazily (once per process: with
+persistent workers, once per run).
 
 Fast paths (``fast_paths``, default all of :data:`~umi_aug.policy.augmented_paths.FAST_PATHS`; ``()`` is the
 reference, kept; both give the same samples): a plan cache on disk shared by epochs, workers and runs, and a frame
@@ -79,6 +82,8 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         fast_paths: ``"plan_disk_cache"`` and/or ``"frames"`` (see :mod:`umi_aug.policy.augmented_paths`); ``()``
             = the reference paths (plan in every process and epoch, :func:`umi_aug.augment.render_episode_frames`).
         plan_cache_dir: folder of the on-disk plan cache (default ``<assets.work_dir>/plans``).
+        rerender_fraction: fraction in ``[0, 1)`` of the augmented slots that are samples of a demo's re-rendered
+            copy (its own labels, its approach frames rendered; :meth:`draw`) instead of a planned episode.
 
     Raises:
         PolicyError: bad ratio/modes, image size or camera count that does not match the session, or no training
@@ -88,9 +93,11 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
     def __init__(self, original: UmiPolicyDataset, assets: Any, modes: Sequence[str] = ("freespace",),
                  ratio: float = 0.5, n_aug_per_demo: int = 1000, seed: int = 0,
                  plan_cache_size: int = DEFAULT_PLAN_CACHE, fast_paths: Sequence[str] = FAST_PATHS,
-                 plan_cache_dir: str | None = None) -> None:
+                 plan_cache_dir: str | None = None, rerender_fraction: float = 0.0) -> None:
         if not 0.0 <= ratio < 1.0:
             raise PolicyError(f"aug.ratio = {ratio!r}: expected a fraction in [0, 1)")
+        if not 0.0 <= rerender_fraction < 1.0:  # NaN fails too
+            raise PolicyError(f"aug.rerender_fraction = {rerender_fraction!r}: expected a fraction in [0, 1)")
         if n_aug_per_demo < 1:
             raise PolicyError(f"aug.n_aug_per_demo = {n_aug_per_demo!r}: expected >= 1")
         bad = [m for m in modes if m not in ("freespace", "obstacle")]
@@ -110,6 +117,7 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         self.assets = assets
         self.modes = tuple(modes)
         self.ratio = float(ratio)
+        self.rerender_fraction = float(rerender_fraction)
         self.n_aug_per_demo = int(n_aug_per_demo)
         self.seed = int(seed)
         self._epoch = torch.zeros((), dtype=torch.int64).share_memory_()
@@ -160,13 +168,15 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         return self.original.get_validation_dataset()
 
     def describe(self) -> str:
+        rr = f", {self.rerender_fraction:g} of them re-rendered demos" if self.rerender_fraction else ""
         return (f"{self.original.describe()} + {self.n_augmented} augmented slots ({'/'.join(self.modes)}, ratio "
-                f"{self.ratio:g}, demos {self.demos}, {self.n_aug_per_demo} augmentations each)")
+                f"{self.ratio:g}, demos {self.demos}, {self.n_aug_per_demo} augmentations each{rr})")
 
     # ------------------------------------------------------------------ episodes
     def planned(self, demo_index: int, aug_id: int, mode: str):
-        """The planned episode ``(demo, aug_id, mode)`` (cached per process, LRU), or None if planning failed."""
-        from umi_aug.augment import plan_episode  # lazy, start-up: cv2, scipy
+        """The planned episode ``(demo, aug_id, mode)`` (cached per process, LRU), or None if planning failed;
+        mode ``"rerender"``: the demo's re-rendered copy (nothing planned)."""
+        from umi_aug.augment import RERENDER_MODE, plan_episode, rerender_episode  # lazy, start-up: cv2, scipy
 
         key = (int(demo_index), int(aug_id), mode)
         if key in self._plans:
@@ -178,6 +188,8 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
         found, planned = False, None
         if handle.demos[key[0]].contact_index is None:  # a lazily built scene group without a splice frame
             found = True
+        elif mode == RERENDER_MODE:
+            found, planned = True, rerender_episode(handle, key[0])
         elif self.plan_disk is not None:
             found, planned = self.plan_disk.load(handle, *key)
             self.stats["plan_disk_hits"] += found
@@ -197,8 +209,12 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
     def _episode_arrays(self, planned) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray],
                                                 list[np.ndarray] | None]:
         """Per arm: poses [N, 6], widths [N, 1], start poses [N, 6] and, with ``task.action_key``, the commanded
-        targets [N, 7] of an augmented episode."""
-        ep = self.assets.umi_episode(planned.episode, planned.demo_index)
+        targets [N, 7] of an augmented episode (a re-rendered demo: its original rows as stored)."""
+        from umi_aug.augment import RERENDER_MODE  # lazy, start-up: cv2, scipy
+
+        d = planned.demo_index
+        ep = (self.assets.for_demo(d).original_lowdim(d) if planned.mode == RERENDER_MODE
+              else self.assets.umi_episode(planned.episode, d))
         pose6 = np.concatenate([ep["robot0_eef_pos"], ep["robot0_eef_rot_axis_angle"]], axis=1).astype(np.float64)
         key = self.original.task.action_key
         if key is not None and key not in ep:
@@ -219,14 +235,24 @@ class AugmentedUmiDataset(torch.utils.data.Dataset):
             n = min(n, first_tail_only_step(t, splice_index))
         return n
 
-    def slot(self, j: int, draw: int = 0) -> tuple[int, int, str, np.random.Generator]:
-        """Demo, aug id, mode of augmented slot ``j`` (its ``draw``-th try) and the slot's generator (for the step
-        and the start-pose noise); a function of ``(seed, epoch, j, draw)`` only."""
-        rng = np.random.default_rng([self.seed, self.epoch, int(j), int(draw)])
+    def draw(self, rng: np.random.Generator) -> tuple[int, int, str]:
+        """Demo, aug id and mode of one augmented sample from ``rng``: uniform over the training demos, the ids and
+        the modes; then, with probability ``rerender_fraction``, the demo's re-rendered copy instead (id 0, mode
+        ``"rerender"``; with 0 nothing more is drawn, so the generator's later draws are as without it)."""
         demo = self.demos[int(rng.integers(len(self.demos)))]
         aug_id = int(rng.integers(self.n_aug_per_demo))
         mode = self.modes[int(rng.integers(len(self.modes)))]
-        return demo, aug_id, mode, rng
+        if self.rerender_fraction > 0.0 and rng.random() < self.rerender_fraction:
+            from umi_aug.augment import RERENDER_MODE  # lazy, start-up: cv2, scipy
+
+            return demo, 0, RERENDER_MODE
+        return demo, aug_id, mode
+
+    def slot(self, j: int, draw: int = 0) -> tuple[int, int, str, np.random.Generator]:
+        """Demo, aug id, mode of augmented slot ``j`` (its ``draw``-th try; :meth:`draw`) and the slot's generator
+        (for the step and the start-pose noise); a function of ``(seed, epoch, j, draw)`` only."""
+        rng = np.random.default_rng([self.seed, self.epoch, int(j), int(draw)])
+        return (*self.draw(rng), rng)
 
     def augmented_sample(self, demo_index: int, aug_id: int, mode: str, cur: int,
                          noise_rng: np.random.Generator | None = None) -> dict[str, Any] | None:

@@ -179,6 +179,9 @@ class AugConfig:
     ratio: float = 0.5
     #: distinct augmentations (start pose / obstacle) per demo
     n_aug_per_demo: int = 1000
+    #: fraction in [0, 1) of the augmented samples that come from a demo's re-rendered copy (its own labels, its
+    #: approach frames rendered by the scene model; ``umi-aug augment --rerender-originals`` offline)
+    rerender_fraction: float = 0.0
     #: root seed of the augmentation (episodes) and of the slot draws
     seed: int = 0
     #: start-pose cone (paper: 50 deg, 0.15 m)
@@ -294,6 +297,9 @@ def check_aug(aug: AugConfig) -> None:
         raise PolicyError(f"config `aug.ratio` = {aug.ratio!r}: expected a fraction in [0, 1)")
     if aug.n_aug_per_demo < 1:
         raise PolicyError(f"config `aug.n_aug_per_demo` = {aug.n_aug_per_demo!r}: must be >= 1")
+    if not 0.0 <= aug.rerender_fraction < 1.0:  # NaN fails too
+        raise PolicyError(f"config `aug.rerender_fraction` = {aug.rerender_fraction!r}: expected a fraction in "
+                          f"[0, 1)")
 
 
 def check_config(cfg: TrainConfig) -> None:

@@ -95,7 +95,7 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
         log.info("aug=%s: preparing session %s (cached in %s)", a.name, session, work)
         assets = prepare_session(session, work, acfg)
     return AugmentedUmiDataset(train, assets, modes, ratio=a.ratio, n_aug_per_demo=a.n_aug_per_demo, seed=a.seed,
-                               plan_cache_size=a.plan_cache_size)
+                               plan_cache_size=a.plan_cache_size, rerender_fraction=a.rerender_fraction)
 
 
 def epoch_seed(seed: int, epoch: int) -> int:

@@ -301,6 +301,8 @@ class UmiAugDataset(_dataset_base()):
             without ``demos/``: scenes from its own frames).
         work_dir: the augmentation stage cache; None = ``<session>/augment`` (plain dataset: ``<dataset>.augment``).
         n_aug_per_demo: distinct augmentations (start pose / obstacle) per demo.
+        rerender_fraction: fraction in [0, 1) of the augmented samples drawn from a demo's re-rendered copy (its
+            own labels, its approach frames rendered by the scene model).
         aug_seed: root seed of the augmented episodes and slot draws.
         splat_iterations / splat_max_gaussians: 3DGS training of the scene; None = what the stage cache in
             ``work_dir`` was trained with, else umi-aug's defaults (1500 / 25000).
@@ -322,7 +324,8 @@ class UmiAugDataset(_dataset_base()):
                  work_dir: Optional[str] = None, n_aug_per_demo: int = 1000, aug_seed: int = 0,
                  splat_iterations: Optional[int] = None, splat_max_gaussians: Optional[int] = None,
                  cone_half_angle_deg: float = 50.0, cone_radius_m: float = 0.15, plan_cache_size: int = 256,
-                 tcp_offset_m: float = 0.205, scene_group: int | str = 1, split_by: str = "episode") -> None:
+                 tcp_offset_m: float = 0.205, scene_group: int | str = 1, split_by: str = "episode",
+                 rerender_fraction: float = 0.0) -> None:
         super().__init__()
         # lazy, start-up: zarr
         from umi_aug.data import ReplayBuffer
@@ -382,13 +385,14 @@ class UmiAugDataset(_dataset_base()):
         if aug != "none":
             self._aug = self._build_augmented(path, session_dir, work_dir, aug_ratio, n_aug_per_demo, aug_seed,
                                               splat_iterations, splat_max_gaussians, cone_half_angle_deg,
-                                              cone_radius_m, plan_cache_size, tcp_offset_m, scene_group)
+                                              cone_radius_m, plan_cache_size, tcp_offset_m, scene_group,
+                                              rerender_fraction)
             self._visits = torch.zeros(max(1, self._aug.n_augmented), dtype=torch.int64).share_memory_()
         log.info("UmiAugDataset: %s", self.describe())
 
     def _build_augmented(self, path: Path, session_dir, work_dir, ratio, n_aug_per_demo, aug_seed, splat_iterations,
                          splat_max_gaussians, cone_half_angle_deg, cone_radius_m, plan_cache_size, tcp_offset_m,
-                         scene_group):
+                         scene_group, rerender_fraction):
         """umi-aug's augmented dataset over the training split (session prepared or read from its stage cache)."""
         # lazy, start-up: zarr
         from umi_aug.policy.config import AugConfig, TrainConfig, check_aug
@@ -415,7 +419,7 @@ class UmiAugDataset(_dataset_base()):
                       splat_scale_reg=cached.get("scale_reg") if splat_iterations is None else None,
                       splat_coarse_downscale=cached.get("coarse_downscale") if splat_iterations is None else None,
                       plan_cache_size=int(plan_cache_size), tcp_offset_m=float(tcp_offset_m),
-                      scene_group=scene_group)
+                      scene_group=scene_group, rerender_fraction=float(rerender_fraction))
         check_aug(a)
         return build_augmented_dataset(self._train, path.absolute(), TrainConfig(task=self.task, aug=a))
 
@@ -488,9 +492,7 @@ class UmiAugDataset(_dataset_base()):
         self._visits[j] += 1  # only this slot's fetch writes it: one fetch per slot per pass
         for draw in range(MAX_SLOT_DRAWS):
             rng = np.random.default_rng([aug.seed, visit, int(j), draw])
-            demo = aug.demos[int(rng.integers(len(aug.demos)))]
-            aug_id = int(rng.integers(aug.n_aug_per_demo))
-            mode = aug.modes[int(rng.integers(len(aug.modes)))]
+            demo, aug_id, mode = aug.draw(rng)
             planned = aug.planned(demo, aug_id, mode)
             if planned is None:
                 continue
