@@ -16,6 +16,12 @@ of the grey image's Laplacian inside the circle, also for the recorded frames bl
 explains. ``--scene`` sets
 :class:`umi_aug.square.scene.SquareSceneConfig` fields (the stages retrain only what they change; ``--work`` is the
 stage cache: a copy of a study's ``work`` folder reuses its static scene). Prints a table; quality only, no timing.
+
+``--ours EXPORT --gt-render VARIANT --augmented K`` also compares at AUGMENTED poses (the cone starts and their
+paths, where the policy is evaluated): for K augmented episodes shared by a study's ``ours`` data and its
+``gt_render`` variant (same poses; the simulator's frames), the new frames are rendered again by this scene model
+(with the gripper of the demo frames the export overlays) and compared with the simulator's, beside the export's
+frames as stored (the scene model the study exported with) — nut and circle PSNR and nut saturation of both.
 """
 
 from __future__ import annotations
@@ -33,6 +39,8 @@ if str(ROOT) not in sys.path:
 
 
 def _value(text: str):
+    if "," in text:  # a tuple field, e.g. nut_radius=0.1,0.4
+        return tuple(_value(t) for t in text.split(","))
     low = text.lower()
     if low in ("true", "false"):
         return low == "true"
@@ -67,6 +75,11 @@ def main() -> None:
     ap.add_argument("--blur-sigmas", type=float, nargs="*", default=[0.5, 1.0],
                     help="also compare the recorded frames blurred by these Gaussian sigmas (pixels)")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers here")
+    ap.add_argument("--ours", type=Path, default=None, help="a study's ours_n* dataset (augmented poses)")
+    ap.add_argument("--gt-render", type=Path, default=None, help="the same study's gt_render_n* dataset")
+    ap.add_argument("--augmented", type=int, default=40, help="augmented episodes compared (with --ours)")
+    ap.add_argument("--picture", type=Path, default=None,
+                    help="with --ours: a PNG of augmented frames, simulator | stored | this scene model (x3)")
     args = ap.parse_args()
 
     import cv2  # lazy, start-up
@@ -130,8 +143,75 @@ def main() -> None:
               f"the renders {row['psnr_circle_db']:.2f} dB (nut {row['nut_psnr_db']:.2f} dB), nut saturation "
               f"{row['nut_saturation']:.0f}")
     print(f"  nut asset: {json.dumps(out['nut_asset'])}")
+    if args.ours is not None:
+        out["augmented"] = augmented_poses(args, assets, circle, sat)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
+
+
+def augmented_poses(args, assets, circle: np.ndarray, sat) -> dict:
+    """The new frames of ``--augmented`` augmented episodes (spread over the export), rendered again by ``assets``'
+    scene model, against ``--gt-render``'s simulator frames; the export's stored frames beside them."""
+    from umi_aug.augment.export_store import read_episode_records
+    from umi_aug.augment.overlay import composite_overlay, source_frames_by_width
+    from umi_aug.augment.render import render_view
+    from umi_aug.data import ReplayBuffer
+    from umi_aug.square.variants import _camera_path, _lowdim
+
+    if args.gt_render is None:
+        raise SystemExit("--ours needs --gt-render")
+    ra, rb = read_episode_records(args.ours), read_episode_records(args.gt_render)
+    key = lambda r, e: (int(r["aug_source_episode"][e]), int(r["aug_id"][e]))  # noqa: E731
+    ia = {key(ra, e): e for e in range(len(ra["aug_id"])) if ra["aug_id"][e] >= 0}
+    shared = [e for e in range(len(rb["aug_id"])) if rb["aug_id"][e] >= 0 and key(rb, e) in ia]
+    pick = [shared[i] for i in np.linspace(0, len(shared) - 1, min(args.augmented, len(shared))).astype(int)]
+    gt_all, stored_all, new_all = [], [], []
+    with ReplayBuffer.open(args.ours) as A, ReplayBuffer.open(args.gt_render) as B:
+        for e in pick:
+            a, s, d = ia[key(rb, e)], int(rb["aug_splice_index"][e]), int(rb["aug_source_episode"][e])
+            rows_a = np.arange(A.get_episode_slice(a).start, A.get_episode_slice(a).start + s)
+            rows_b = np.arange(B.get_episode_slice(e).start, B.get_episode_slice(e).start + s)
+            path = _camera_path(A, _lowdim(A, rows_a))
+            stored = np.asarray(A["camera0_rgb"].get_orthogonal_selection((rows_a,)))
+            h = assets.for_demo(d)
+            c = int(h.demos[d].contact_index)
+            # the gripper of the demo frames the export overlays (render.overlay_sources' rule)
+            src_rows = source_frames_by_width(h.demos[d].gripper_width[: c + 1], path["gripper_width"],
+                                              np.linspace(0.0, 1.0, c + 1), np.arange(s) / max(1, s))
+            rendered = np.stack([render_view(h, t) for t in path["T_world_cam"]])
+            new_all.append(composite_overlay(rendered, h.original_frames(d, src_rows), h.overlay_alpha))
+            stored_all.append(stored)
+            gt_all.append(np.asarray(B["camera0_rgb"].get_orthogonal_selection((rows_b,))))
+    gt, stored, new = np.concatenate(gt_all), np.concatenate(stored_all), np.concatenate(new_all)
+    nut = nut_pixels(gt) & circle[None]
+    full = np.broadcast_to(circle, gt.shape[:3])
+    out = {"episodes": len(pick), "frames": int(len(gt)), "nut_saturation_simulator": float(sat(gt)[nut].mean())}
+    for name, f in (("stored", stored), ("this_scene", new)):
+        out[name] = {"psnr_circle_db": psnr(gt, f, full), "nut_psnr_db": psnr(gt, f, nut),
+                     "nut_saturation": float(sat(f)[nut].mean())}
+    if args.picture is not None:
+        _picture(args.picture, gt, stored, new, nut)
+    print(f"  augmented poses ({out['episodes']} episodes, {out['frames']} new frames; simulator nut saturation "
+          f"{out['nut_saturation_simulator']:.0f}):")
+    for name in ("stored", "this_scene"):
+        r = out[name]
+        print(f"    {name:10s}: circle {r['psnr_circle_db']:.2f} dB, nut {r['nut_psnr_db']:.2f} dB, nut saturation "
+              f"{r['nut_saturation']:.0f}")
+    return out
+
+
+def _picture(path: Path, gt: np.ndarray, stored: np.ndarray, new: np.ndarray, nut: np.ndarray, rows: int = 6) -> None:
+    """Rows of augmented frames with the most nut pixels among evenly spaced ones: simulator | as stored | this
+    scene model, enlarged 3x (nearest)."""
+    import cv2  # lazy, start-up
+
+    cand = np.linspace(0, len(gt) - 1, 8 * rows).astype(int)
+    pick = np.sort(cand[np.argsort(-nut[cand].sum(axis=(1, 2)))[:rows]])
+    img = np.concatenate([np.concatenate([gt[i], stored[i], new[i]], axis=1) for i in pick], axis=0)
+    img = cv2.resize(img, None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), img[..., ::-1])
+    print(f"  picture: {path} (columns: simulator | stored | this scene model)")
 
 
 if __name__ == "__main__":
