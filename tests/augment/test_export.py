@@ -205,7 +205,8 @@ def test_cli_parses_into_a_config():
     assert (cfg.mode, cfg.n_per_demo, cfg.seed, cfg.image_size) == ("both", 7, 5, 96)
     assert cfg.obstacle.assets == ("box", "mug") and cfg.splat.iterations == 0
     assert args.func.__name__ == "cmd_augment" and not cfg.rerender_originals
-    assert config_from_args(ap.parse_args(["augment", "S", "--out", "o.zarr", "--rerender-originals"])).rerender_originals
+    rr = config_from_args(ap.parse_args(["augment", "S", "--out", "o.zarr", "--rerender-originals"]))
+    assert rr.rerender_originals
 
 
 @pytest.mark.slow  # spawns 2 worker processes (torch + numba imports)

@@ -11,7 +11,7 @@ import numpy as np
 from rich.table import Table
 
 from umi_aug.augment.pictures import contact_sheet
-from umi_aug.augment.plan import MODE_CODES
+from umi_aug.augment.plan import MODE_CODES, RERENDER_MODE
 from umi_aug.augment.session_assets import SessionAssets
 from umi_aug.traj import plot_trajectories
 
@@ -75,8 +75,9 @@ def export_pictures(out: Path, assets: SessionAssets, buf, rec: dict, episodes_b
     pics = {}
     E = buf.n_episodes
     orig = [i for i in range(E) if rec["aug_mode"][i] == 0][:2]
-    rerendered = [i for i in range(E) if rec["aug_mode"][i] == MODE_CODES["rerender"]][:1]
-    augm = rerendered + [i for i in range(E) if 0 < rec["aug_mode"][i] != MODE_CODES["rerender"]][:6 - len(rerendered)]
+    code = MODE_CODES[RERENDER_MODE]
+    rerendered = [i for i in range(E) if rec["aug_mode"][i] == code][:1]
+    augm = rerendered + [i for i in range(E) if 0 < rec["aug_mode"][i] != code][:6 - len(rerendered)]
     rows = orig + augm
     if rows:
         frames = [_EpisodeFrames(buf["camera0_rgb"], buf.get_episode_slice(i)) for i in rows]

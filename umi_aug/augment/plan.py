@@ -241,6 +241,7 @@ def rerender_episode(assets: SessionAssets, demo_index: int) -> PlannedEpisode:
     c = int(d.contact_index)
     T_cam = np.asarray(d.T_world_cam, np.float64)
     width = np.asarray(d.gripper_width, np.float64).reshape(-1)
+    # UMI's camera→TCP offset; the export writes the demo's own stored rows, not these
     T_tcp = tcp_poses_from_camera_poses(T_cam)
     actions = np.concatenate([pose_to_pos_rotvec(T_tcp), width[:, None]], axis=1)
     ts = np.asarray(d.timestamps, np.float64)
