@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--nut-iterations", type=int, default=800)
     ap.add_argument("--nut-gaussians", type=int, default=3000)
     ap.add_argument("--nut-size", type=int, default=None, help="orbit image size (default: density-matched)")
-    ap.add_argument("--nut-oversample", type=float, default=0.75)
+    ap.add_argument("--nut-oversample", type=float, default=1.5)
     ap.add_argument("--static-iterations", type=int, default=None, help="static scene only (default: --iterations)")
     ap.add_argument("--static-gaussians", type=int, default=None, help="static scene only (default: --gaussians)")
     ap.add_argument("--static-scan-views", type=int, default=None, help="static scan only (default: --scan-views)")

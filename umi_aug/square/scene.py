@@ -79,11 +79,13 @@ class SquareSceneConfig:
             per-demo scene uses the same steps and ``static_max_gaussians + nut_max_gaussians``).
         n_nut_views, nut_fov_deg, nut_radius: the nut's orbit views (equidistant lens, ``nut_fov_deg`` across).
         nut_image_size: orbit image size; None: the policy lens's pixel density at its centre (``fx`` of
-            :func:`wrist_intrinsics` (``image_size``) per radian) x ``nut_oversample`` (30 px at 84²). Matching
-            the density matters: a nut trained denser than it is rendered comes out ~1 px too fat (sub-pixel
-            Gaussians dilated by the renderer's screen-space filter). Measured at 84² (nut-pixel PSNR median / 5th
-            percentile over 36 augmented poses): 96² orbit views (2.4x) 12.9 / 11.4 dB; oversample 1.5: 15.8 /
-            13.2; 1.0: 18.2 / 14.3; 0.75: 18.1 / 16.9 (per-demo 3DGS: 18.6-18.8 / 16.7).
+            :func:`wrist_intrinsics` (``image_size``) per radian) x ``nut_oversample`` (60 px at 84²). The
+            density decides the look: a nut trained on coarser views than it is rendered at comes out thin and
+            see-through (its Gaussians sized for the coarse pixels; the table shows through), one trained much
+            denser a pixel too wide. At 84², 24 views at 0.75 (the default until 2026-11-29) render the nut at
+            15.5 dB / saturation 112 against the simulator's 152 at the demos' own poses and 15.6 dB at augmented
+            poses; 48 views at 1.5: 18.5 / 142 and 18.8 dB, the image circle as good or better; 2.0: 19.2 dB on the
+            nut, the circle 1 dB worse (``benchmarks/square_demo_rerender.py``; ``docs/square_learning.md`` §2f).
         nut_iterations, nut_max_gaussians: trainer steps and budget of the nut asset.
         init_fraction: initial Gaussians from the scan's depth, as a fraction of the budget.
         sh_degree: SH degree of every model.
@@ -99,9 +101,9 @@ class SquareSceneConfig:
     scan_target_radius: float = 0.12
     static_iterations: int = 1500
     static_max_gaussians: int = 12000
-    n_nut_views: int = 24
+    n_nut_views: int = 48
     nut_image_size: int | None = None
-    nut_oversample: float = 0.75
+    nut_oversample: float = 1.5
     nut_fov_deg: float = 70.0
     nut_radius: tuple[float, float] = (0.16, 0.26)
     nut_iterations: int = 800
