@@ -153,8 +153,8 @@ def augmented_poses(args, assets, circle: np.ndarray, sat) -> dict:
     """The new frames of ``--augmented`` augmented episodes (spread over the export), rendered again by ``assets``'
     scene model, against ``--gt-render``'s simulator frames; the export's stored frames beside them."""
     from umi_aug.augment.export_store import read_episode_records
-    from umi_aug.augment.overlay import composite_overlay, source_frames_by_width
-    from umi_aug.augment.render import render_view
+    from umi_aug.augment.overlay import composite_overlay
+    from umi_aug.augment.render import overlay_source_rows, render_view
     from umi_aug.data import ReplayBuffer
     from umi_aug.square.variants import _camera_path, _lowdim
 
@@ -174,10 +174,9 @@ def augmented_poses(args, assets, circle: np.ndarray, sat) -> dict:
             path = _camera_path(A, _lowdim(A, rows_a))
             stored = np.asarray(A["camera0_rgb"].get_orthogonal_selection((rows_a,)))
             h = assets.for_demo(d)
-            c = int(h.demos[d].contact_index)
-            # the gripper of the demo frames the export overlays (render.overlay_sources' rule)
-            src_rows = source_frames_by_width(h.demos[d].gripper_width[: c + 1], path["gripper_width"],
-                                              np.linspace(0.0, 1.0, c + 1), np.arange(s) / max(1, s))
+            demo = h.demos[d]  # the gripper of the demo frames the export overlays
+            src_rows = overlay_source_rows(demo.gripper_width, demo.contact_index, path["gripper_width"], s,
+                                           np.arange(s))
             rendered = np.stack([render_view(h, t) for t in path["T_world_cam"]])
             new_all.append(composite_overlay(rendered, h.original_frames(d, src_rows), h.overlay_alpha))
             stored_all.append(stored)

@@ -49,8 +49,8 @@ def main() -> None:
 
     from umi_aug.augment.config import AugmentConfig
     from umi_aug.augment.export_store import read_episode_records
-    from umi_aug.augment.overlay import composite_overlay, source_frames_by_width
-    from umi_aug.augment.render import render_view
+    from umi_aug.augment.overlay import composite_overlay
+    from umi_aug.augment.render import overlay_source_rows, render_view
     from umi_aug.square.source import SquareInput, prepare_square, spartn_render_function
     from umi_aug.square.variants import write_variant
 
@@ -63,9 +63,7 @@ def main() -> None:
         h = assets.for_demo(int(info["source"]))
         if "n_new" in info:  # an augmented episode: the gripper of the demo frames the export overlays
             n, d = int(info["n_new"]), h.demos[int(info["source"])]
-            c, k = int(d.contact_index), np.arange(n)
-            rows = source_frames_by_width(d.gripper_width[: c + 1], info["gripper_width"][:n],
-                                          np.linspace(0.0, 1.0, c + 1), k / max(1, n))
+            rows = overlay_source_rows(d.gripper_width, d.contact_index, info["gripper_width"], n, np.arange(n))
             rendered = np.stack([render_view(h, T) for T in info["T_world_cam"][:n]])
             return composite_overlay(rendered, h.original_frames(int(info["source"]), rows), h.overlay_alpha)
         return spartn_render_function(assets)(episode, info)  # a demo re-rendered (--rerender)

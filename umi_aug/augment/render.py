@@ -26,7 +26,8 @@ import numpy as np
 from umi_aug.augment.overlay import composite_overlay, source_frames_by_width
 from umi_aug.errors import AugmentError
 
-__all__ = ["render_episode_frames", "overlay_originals", "overlay_sources", "placed_obstacles", "render_view"]
+__all__ = ["render_episode_frames", "overlay_originals", "overlay_source_rows", "overlay_sources", "placed_obstacles",
+           "render_view"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from umi_aug.augment.plan import PlannedEpisode
@@ -106,16 +107,24 @@ def _obstacle_over_original(assets: SessionAssets, T_world_cam: np.ndarray, obst
     return np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
 
 
+def overlay_source_rows(demo_gripper_width: np.ndarray, contact_index: int, episode_gripper_width: np.ndarray,
+                        splice_index: int, frame_indices: np.ndarray) -> np.ndarray:
+    """The demo frame whose gripper is overlaid on each new frame ``frame_indices`` ``[K]`` of an episode spliced
+    at ``splice_index``: among the demo's frames ``0..contact_index`` (widths ``demo_gripper_width``, metres), the
+    one with the closest gripper width to the episode's (``episode_gripper_width`` [N], metres), ties broken by
+    the closest normalised time."""
+    c = int(contact_index)
+    idx = np.asarray(frame_indices, dtype=np.int64)
+    return source_frames_by_width(np.asarray(demo_gripper_width)[: c + 1], np.asarray(episode_gripper_width)[idx],
+                                  np.linspace(0.0, 1.0, c + 1), idx / max(1, int(splice_index)))
+
+
 def overlay_sources(assets: SessionAssets, planned: PlannedEpisode, frame_indices: np.ndarray) -> np.ndarray:
-    """Original frame (index into the demo) whose gripper is overlaid on each new frame ``[K]``: the pre-contact
-    demo frame with the closest gripper width, ties broken by the closest normalised time."""
+    """Original frame (index into the demo) whose gripper is overlaid on each new frame ``[K]`` of ``planned``
+    (:func:`overlay_source_rows`)."""
     d = assets.demo(planned.demo_index)
     ep = planned.episode
-    c = int(d.contact_index)
-    n = max(1, int(ep.splice_index))
-    idx = np.asarray(frame_indices, dtype=np.int64)
-    return source_frames_by_width(d.gripper_width[: c + 1], np.asarray(ep.gripper_width)[idx],
-                                  np.linspace(0.0, 1.0, c + 1), idx / n)
+    return overlay_source_rows(d.gripper_width, d.contact_index, ep.gripper_width, ep.splice_index, frame_indices)
 
 
 def overlay_originals(assets: SessionAssets, demo_index: int, src: np.ndarray) -> np.ndarray:
