@@ -253,6 +253,44 @@ def test_fast_matches_reference(rng, remap224, remap224_clamp, seam):
         assert np.abs(oc - _remap_reference(r, fc)).max() < tol
 
 
+@pytest.mark.parametrize("size,seam", [(84, "blend"), (84, "clamp"), (224, "blend"), (96, "blend")])
+def test_face_read_boxes_hold_every_texel_remap_reads(rng, size, seam):
+    """Texels outside each face's read box are never sampled: replacing them with other random values changes no
+    output of remap (linear, nearest, uint8) or remap_depth — GoPro at 84² and 224² (rays past 90°) and an
+    ultrawide 170° lens that needs all six faces. The side faces' boxes leave a part out (not a vacuous box)."""
+    if size == 96:
+        intr = FisheyeIntrinsics.equidistant(96, 96, 96 / (2 * math.radians(170)), theta_limit=math.radians(170))
+        r = CubemapFisheyeRemap(intr, face_size=24, seam=seam)
+    else:
+        r = CubemapFisheyeRemap(gopro_intrinsics_2_7k().umi_policy(size), seam=seam)
+    s = r.face_size
+    boxes = r.face_read_boxes()
+    assert tuple(boxes) == r.faces_needed
+    inside = {}
+    for n, (c0, c1, r0, r1) in boxes.items():
+        assert 0 <= c0 <= c1 < s and 0 <= r0 <= r1 < s, (n, boxes[n])
+        m = np.zeros((s, s), dtype=bool)
+        m[r0 : r1 + 1, c0 : c1 + 1] = True
+        inside[n] = m
+    if size != 96:  # the GoPro: the front face whole; each side face read on its band nearest the front only
+        assert boxes["front"] == (0, s - 1, 0, s - 1)
+        for n in ("right", "left", "down", "up"):
+            assert 0.4 < inside[n].mean() < 0.8, (n, boxes[n])
+    faces = {n: rng.random((s, s, 3), dtype=np.float32) for n in r.faces_needed}
+    other = {n: np.where(inside[n][..., None], faces[n], rng.random((s, s, 3), dtype=np.float32))
+             for n in r.faces_needed}
+    assert all((other[n] != faces[n]).any() for n in r.faces_needed if not inside[n].all())
+    for interp in ("linear", "nearest"):
+        np.testing.assert_array_equal(r.remap(faces, interpolation=interp), r.remap(other, interpolation=interp))
+    f8 = {n: (255 * a).astype(np.uint8) for n, a in faces.items()}
+    o8 = {n: (255 * a).astype(np.uint8) for n, a in other.items()}
+    np.testing.assert_array_equal(r.remap(f8), r.remap(o8))
+    z = {n: 0.2 + a[..., 0] for n, a in faces.items()}
+    zo = {n: np.where(inside[n], z[n], np.inf).astype(np.float32) for n in z}  # "no hit" outside the boxes
+    np.testing.assert_array_equal(r.remap_depth(z), r.remap_depth(zo))
+    np.testing.assert_array_equal(r.remap_depth(z, "nearest"), r.remap_depth(zo, "nearest"))
+
+
 def test_faces_never_bleed(gopro224, remap224, remap224_clamp):
     """Each face constant: every valid pixel gets its own face's constant (clamp: exactly, everywhere; blend:
     exactly, away from the seams, and only values of the two or three faces meeting there near them)."""

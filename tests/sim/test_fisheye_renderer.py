@@ -150,3 +150,101 @@ def test_timing_report_has_per_face_breakdown(gopro224, gl, model0):
         assert rep["breakdown_ms"][f"render/{face}"] > 0
     assert "render/back" not in rep["breakdown_ms"]
     assert rep["breakdown_ms"]["remap/rgb"] > 0 and rep["ms_per_frame"] > 0
+
+
+def test_geoms_in_view_never_drops_a_sphere_that_reaches_the_box():
+    """geoms_in_view against brute force: points sampled in each bounding sphere (surface and inside); a sphere
+    with any point in the box's frustum between the clip planes is kept. Spheres behind the camera, beside the
+    box or past the far plane are dropped (the test is not vacuous); bound 0 (planes) is always kept. Random
+    poses, rotations near π included."""
+    from types import SimpleNamespace
+
+    from umi_aug.sim.raster import geoms_in_view
+
+    rng = np.random.default_rng(11)
+    near, far = 0.01, 3.0
+    n_dropped = 0
+    for trial in range(12):
+        T = np.eye(4)
+        if trial < 3:  # rotations near π about a random axis
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            ang = math.pi - 1e-6 * trial
+            K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+            T[:3, :3] = np.eye(3) + math.sin(ang) * K + (1 - math.cos(ang)) * K @ K
+        else:
+            T[:3, :3] = random_rotation(rng)
+        T[:3, 3] = rng.uniform(-1, 1, 3)
+        x0, x1 = np.sort(rng.uniform(-1.2, 1.2, 2))
+        y0, y1 = np.sort(rng.uniform(-1.2, 1.2, 2))
+        n = 300
+        centres_view = rng.uniform(-2.0, 2.0, (n, 3)) * np.array([1.0, 1.0, 2.0])
+        radius = rng.uniform(0.005, 0.6, n)
+        radius[:5] = 0.0  # planes
+        centres_view[5] = [0.0, 0.0, -0.5]  # straight behind
+        radius[5] = 0.3
+        centres_view[6] = [0.0, 0.0, far + 0.5]  # past the far plane
+        radius[6] = 0.2
+        model = SimpleNamespace(geom_rbound=radius)
+        data = SimpleNamespace(geom_xpos=centres_view @ T[:3, :3].T + T[:3, 3])
+        keep = geoms_in_view(model, data, T, (x0, x1, y0, y1), near, far)
+        assert keep.dtype == bool and keep.shape == (n,)
+        assert keep[:5].all() and not keep[5] and not keep[6]
+        u = rng.normal(size=(n, 4000, 3))
+        u /= np.linalg.norm(u, axis=-1, keepdims=True)
+        scale = np.concatenate([np.ones(2000), rng.random(2000) ** (1 / 3)])  # on the sphere and inside it
+        pts = centres_view[:, None, :] + radius[:, None, None] * scale[None, :, None] * u
+        z = pts[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            px, py = pts[..., 0] / z, pts[..., 1] / z
+        seen = ((z >= near) & (z <= far) & (px >= x0) & (px <= x1) & (py >= y0) & (py <= y1)).any(axis=1)
+        assert not (seen & ~keep).any(), np.flatnonzero(seen & ~keep)
+        n_dropped += int((~keep).sum())
+    assert n_dropped > 12 * 100  # most random spheres lie outside a random box's frustum
+
+
+@pytest.mark.parametrize("size", [84, 224])
+def test_culled_render_is_the_unculled_render(gl, model0, size):
+    """Per-face geom culling changes no output: rgb, ray depth and segmentation equal the render with every geom in
+    every face (the reference), at random poses through the tabletop scene (the gripper in view, the table,
+    distractors behind and beside the camera); at those poses some face leaves geoms out."""
+    from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
+    from umi_aug.sim.fisheye_renderer import FisheyeRenderer, RasterOptions
+    from umi_aug.sim.raster import geoms_in_view
+    from umi_aug.sim.tabletop_state import TabletopState
+
+    intr = gopro_intrinsics_2_7k().umi_policy(size)
+    st = TabletopState(model0)
+    rng = np.random.default_rng(5)
+    opts = RasterOptions(near=0.005, far=10.0)
+    n_left_out = 0
+    groups = model0.geom_group.copy()
+    with FisheyeRenderer(model0, intr, options=opts) as fast, \
+            FisheyeRenderer(model0, intr, options=opts, cull_geoms=False) as ref:
+        assert fast.cull_geoms and not ref.cull_geoms
+        for _ in range(6):
+            T = np.eye(4)
+            T[:3, :3] = random_rotation(rng)
+            T[:3, 3] = rng.uniform([-0.3, -0.3, 0.05], [0.3, 0.3, 0.5])
+            st.set(T, float(rng.uniform(0.0, 0.08)))
+            a = fast.render(T, st.data, segmentation=True)
+            b = ref.render(T, st.data, segmentation=True)
+            np.testing.assert_array_equal(a.rgb, b.rgb)
+            np.testing.assert_array_equal(a.ray_depth, b.ray_depth)
+            np.testing.assert_array_equal(a.depth_valid, b.depth_valid)
+            np.testing.assert_array_equal(a.geom_id, b.geom_id)
+            for n, Tf in fast.face_poses(T).items():
+                n_left_out += int((~geoms_in_view(model0, st.data, Tf, fast._face_boxes[n], fast.near,
+                                                  fast.far)).sum())
+    np.testing.assert_array_equal(model0.geom_group, groups)  # restored after every face
+    assert n_left_out > 0
+
+
+def test_update_scene_rejects_a_geom_mask_of_the_wrong_length(gl, model0):
+    from umi_aug.errors import SimError
+    from umi_aug.sim.raster import PinholeRasterizer
+    from umi_aug.sim.tabletop_state import TabletopState
+
+    st = TabletopState(model0)
+    with PinholeRasterizer(model0, 16) as r, pytest.raises(SimError, match="geom_mask must be"):
+        r.update_scene(st.data, geom_mask=np.ones(model0.ngeom + 1, dtype=bool))

@@ -362,6 +362,7 @@ class CubemapFisheyeRemap:
         ray_cos[valid] = cos
         self.ray_cos: np.ndarray = ray_cos.astype(np.float32)
         self._secant: np.ndarray | None = None  # built on first remap_depth
+        self._read_boxes: dict[str, tuple[int, int, int, int]] | None = None  # built on first face_read_boxes
         logger.debug(
             "cubemap remap %dx%d: face_size=%d faces=%s seam=%s valid=%.3f theta_max=%.1f deg",
             w, h, s, self.faces_needed, seam, valid.mean(), math.degrees(self._theta_max_seen),
@@ -408,6 +409,47 @@ class CubemapFisheyeRemap:
             np.concatenate(mx).astype(np.float32)[None],
             np.concatenate(my).astype(np.float32)[None],
         )
+
+    # -- which texels matter ---------------------------------------------------------------------------------
+    def face_read_boxes(self) -> dict[str, tuple[int, int, int, int]]:
+        """Per needed face, the texels :meth:`remap` and :meth:`remap_depth` can read, as an inclusive box
+        ``(col_min, col_max, row_min, row_max)`` in face pixels (row 0 at the top, OpenCV face axes); built once.
+
+        A texel outside its face's box never reaches the fisheye image, with either interpolation: a renderer may
+        leave out whatever projects only outside it (``umi_aug.sim.fisheye_renderer``: geometry culled per face).
+        Counted: the bilinear footprint of every valid pixel's map coordinate (linear and nearest maps) and, with
+        ``seam="blend"``, of the neighbour sample behind every border texel such a footprint touches (cv2 rounds a
+        map coordinate to 1/32 texel before it takes the floor: both roundings are counted).
+        """
+        if self._read_boxes is None:
+            h, w = self._atlas_shape
+            read = np.zeros((h, w), dtype=bool)
+
+            def touch(map_x: np.ndarray, map_y: np.ndarray) -> None:
+                # cv2 rounds a coordinate to 1/32 texel, then reads floor and floor + 1: count either rounding
+                tol = 1.0 / 32.0
+                mx, my = np.asarray(map_x, dtype=np.float64), np.asarray(map_y, dtype=np.float64)
+                for x0 in {0: np.floor(mx - tol), 1: np.floor(mx + tol)}.values():
+                    for y0 in {0: np.floor(my - tol), 1: np.floor(my + tol)}.values():
+                        xi, yi = x0.astype(np.int64), y0.astype(np.int64)
+                        for dy in (0, 1):
+                            for dx in (0, 1):
+                                read[np.clip(yi + dy, 0, h - 1), np.clip(xi + dx, 0, w - 1)] = True
+
+            v = self.valid_mask
+            touch(self._map_x[v], self._map_y[v])
+            touch(self._map_x_nearest[v], self._map_y_nearest[v])
+            if self.seam == "blend":  # border texels read above take their values from a neighbour's texels
+                need = read[self._ring_dst]
+                touch(self._ring_map_x[0][need], self._ring_map_y[0][need])
+            s, pad, pitch = self.face_size, ATLAS_PAD_PX, self._pitch
+            boxes: dict[str, tuple[int, int, int, int]] = {}
+            for k, name in enumerate(self.faces_needed):
+                texels = read[pad : pad + s, k * pitch + pad : k * pitch + pad + s]
+                rows, cols = np.flatnonzero(texels.any(axis=1)), np.flatnonzero(texels.any(axis=0))
+                boxes[name] = (int(cols[0]), int(cols[-1]), int(rows[0]), int(rows[-1]))
+            self._read_boxes = boxes
+        return dict(self._read_boxes)
 
     # -- face camera -----------------------------------------------------------------------------------------
     def face_intrinsics_matrix(self) -> np.ndarray:

@@ -23,7 +23,7 @@ from umi_aug.errors import SimError
 from umi_aug.sim.camera_frames import mujoco_camera_vectors
 from umi_aug.sim.gl import create_gl_context, import_mujoco
 
-__all__ = ["RasterOptions", "PinholeRasterizer"]
+__all__ = ["RasterOptions", "PinholeRasterizer", "geoms_in_view"]
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,36 @@ class RasterOptions:
     near: float | None = None
     far: float | None = None
     max_geom: int = 10000
+
+
+def geoms_in_view(model, data, T_world_view: np.ndarray, box: tuple[float, float, float, float], near: float,
+                  far: float) -> np.ndarray:
+    """Which geoms may cover a pixel of a pinhole view's image-plane box: their bounding spheres
+    (``data.geom_xpos``, ``model.geom_rbound``) are not wholly outside the box's frustum between the clip planes.
+
+    Conservative: a geom left out has no point whose projection falls inside the box in front of the near plane
+    and before the far plane, so nothing it would draw lands there. Geoms without a bound (``geom_rbound`` 0:
+    planes) are always in.
+
+    Args:
+        model, data: ``mujoco.MjModel`` / ``mujoco.MjData`` (kinematics up to date).
+        T_world_view: np.ndarray,  # [4, 4] view pose, OpenCV axes (x right, y down, z forward), metres
+        box: ``(x_min, x_max, y_min, y_max)``, the image-plane region (normalised coordinates ``x/z``, ``y/z``) whose
+            pixels matter, pixel edges included.
+        near, far: clip planes, metres along the view's z.
+    Returns:
+        np.ndarray,  # [ngeom] bool, True = may be seen
+    """
+    T = np.asarray(T_world_view, dtype=np.float64)
+    centres = (np.asarray(data.geom_xpos, dtype=np.float64) - T[:3, 3]) @ T[:3, :3]  # view coordinates
+    x, y, z = centres[:, 0], centres[:, 1], centres[:, 2]
+    radius = np.asarray(model.geom_rbound, dtype=np.float64)
+    slack = radius * (1.0 + 1e-6) + 1e-9  # round-off never culls a sphere that touches the frustum
+    x0, x1, y0, y1 = (float(b) for b in box)
+    outside = ((x - x1 * z) / math.hypot(1.0, x1) > slack) | ((x0 * z - x) / math.hypot(1.0, x0) > slack)
+    outside |= ((y - y1 * z) / math.hypot(1.0, y1) > slack) | ((y0 * z - y) / math.hypot(1.0, y0) > slack)
+    outside |= (float(near) - z > slack) | (z - float(far) > slack)
+    return ~outside | (radius <= 0.0)
 
 
 class PinholeRasterizer:
@@ -85,6 +115,8 @@ class PinholeRasterizer:
         self._con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self._scene = mujoco.MjvScene(model, maxgeom=int(opts.max_geom))
         self._option = mujoco.MjvOption()
+        hidden = [g for g in range(len(self._option.geomgroup)) if not self._option.geomgroup[g]]
+        self._hidden_group: int | None = hidden[-1] if hidden else None  # where update_scene parks left-out geoms
         self._cam = mujoco.MjvCamera()
         self._cam.type = mujoco.mjtCamera.mjCAMERA_FREE
         self._rect = mujoco.MjrRect(0, 0, S, S)
@@ -132,15 +164,32 @@ class PinholeRasterizer:
             pass
 
     # -------------------------------------------------------------------------------------------- per frame
-    def update_scene(self, data, T_world_cam: np.ndarray | None = None) -> None:
+    def update_scene(self, data, T_world_cam: np.ndarray | None = None, geom_mask: np.ndarray | None = None) -> None:
         """Push the geometry of ``data`` (after ``mj_forward``/``mj_kinematics``) into the abstract scene.
 
         Args:
             data: ``mujoco.MjData`` of :attr:`model`.
             T_world_cam: np.ndarray | None,  # [4, 4] OpenCV axes; places MuJoCo's headlight (if the model has
                 one) at this camera, looking along its optical axis, for every view rendered from this update.
+            geom_mask: np.ndarray | None,  # [ngeom] bool; geoms marked False are left out of the scene (e.g. the
+                ones :func:`geoms_in_view` finds outside the views to render). The model's ``geom_group`` of those
+                geoms is set to a group the scene hides for the update and restored before returning.
         """
         mujoco = self._mj
+        if geom_mask is not None:
+            keep = np.asarray(geom_mask, dtype=bool)
+            if keep.shape != (self.model.ngeom,):
+                raise SimError(f"PinholeRasterizer.update_scene: geom_mask must be [{self.model.ngeom}] bool, got "
+                               f"shape {keep.shape}")
+            if self._hidden_group is not None and not keep.all():
+                groups = self.model.geom_group
+                saved = groups.copy()
+                groups[~keep] = self._hidden_group
+                try:
+                    self.update_scene(data, T_world_cam)
+                finally:
+                    groups[:] = saved
+                return
         cam = self._cam
         if T_world_cam is not None:
             T = np.asarray(T_world_cam, dtype=np.float64)
