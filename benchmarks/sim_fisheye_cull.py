@@ -56,7 +56,7 @@ def _triangles(model, data, renderer, T_world_cam, culled: bool) -> dict[str, in
     tri = np.where(model.geom_type == 7, model.mesh_facenum[np.maximum(model.geom_dataid, 0)], 12)
     out = {}
     for name, Tf in renderer.face_poses(T_world_cam).items():
-        keep = (geoms_in_view(model, data, Tf, renderer._face_boxes[name], renderer.near, renderer.far)
+        keep = (geoms_in_view(model, data, Tf, renderer.face_boxes[name], renderer.near, renderer.far)
                 if culled else np.ones(model.ngeom, dtype=bool))
         out[name] = int(tri[keep & (model.geom_group < 3)].sum())
     return out
@@ -82,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     env = SquareEnv(image_size=None)
     env.reset(seed=0)
     model, data = env.model, env.data
-    print(f"square wrist camera, {len(states)} poses along {args.seeds} expert episodes; one thread, this machine's load")
+    print(f"square wrist camera, {len(states)} poses along {args.seeds} expert episodes; one thread, this "
+          "machine's load")
     print("| size | outputs | reference ms/frame | culled ms/frame | ratio | frames that differ | "
           "triangles/frame reference → culled |")
     print("|---|---|---|---|---|---|---|")

@@ -234,7 +234,7 @@ def test_culled_render_is_the_unculled_render(gl, model0, size):
             np.testing.assert_array_equal(a.depth_valid, b.depth_valid)
             np.testing.assert_array_equal(a.geom_id, b.geom_id)
             for n, Tf in fast.face_poses(T).items():
-                n_left_out += int((~geoms_in_view(model0, st.data, Tf, fast._face_boxes[n], fast.near,
+                n_left_out += int((~geoms_in_view(model0, st.data, Tf, fast.face_boxes[n], fast.near,
                                                   fast.far)).sum())
     np.testing.assert_array_equal(model0.geom_group, groups)  # restored after every face
     assert n_left_out > 0

@@ -94,9 +94,12 @@ class FisheyeRenderer:
         self._raster = PinholeRasterizer(model, self.face_size, options)
         self._fov = float(self.cubemap.face_fovy_deg())
         self.cull_geoms = bool(cull_geoms)
-        f, c = self.face_size / 2.0, (self.face_size - 1) / 2.0  # face pixel j covers x/z in [(j-0.5-c)/f, (j+0.5-c)/f]
-        self._face_boxes = {n: ((c0 - 0.5 - c) / f, (c1 + 0.5 - c) / f, (r0 - 0.5 - c) / f, (r1 + 0.5 - c) / f)
-                            for n, (c0, c1, r0, r1) in self.cubemap.face_read_boxes().items()}
+        # per face, the image-plane box (x/z, y/z; face pixel j covers [(j - 0.5 - c)/f, (j + 0.5 - c)/f]) of the
+        # texels the fisheye image reads: what geoms_in_view tests each geom against
+        f, c = self.face_size / 2.0, (self.face_size - 1) / 2.0
+        self.face_boxes: dict[str, tuple[float, float, float, float]] = {
+            n: ((c0 - 0.5 - c) / f, (c1 + 0.5 - c) / f, (r0 - 0.5 - c) / f, (r1 + 0.5 - c) / f)
+            for n, (c0, c1, r0, r1) in self.cubemap.face_read_boxes().items()}
         self._own_data = mujoco.MjData(model)
         mujoco.mj_forward(model, self._own_data)
         self._t: dict[str, float] = defaultdict(float)
@@ -161,7 +164,7 @@ class FisheyeRenderer:
         for n, Tf in faces.items():
             if self.cull_geoms:
                 t0 = time.perf_counter()
-                seen = geoms_in_view(self.model, mj_data, Tf, self._face_boxes[n], self.near, self.far)
+                seen = geoms_in_view(self.model, mj_data, Tf, self.face_boxes[n], self.near, self.far)
                 self._raster.update_scene(mj_data, T_world_cam, geom_mask=seen)
                 self._t["update_scene"] += time.perf_counter() - t0
             ta = time.perf_counter()
