@@ -173,7 +173,8 @@ class PinholeRasterizer:
                 one) at this camera, looking along its optical axis, for every view rendered from this update.
             geom_mask: np.ndarray | None,  # [ngeom] bool; geoms marked False are left out of the scene (e.g. the
                 ones :func:`geoms_in_view` finds outside the views to render). The model's ``geom_group`` of those
-                geoms is set to a group the scene hides for the update and restored before returning.
+                geoms is set to a group the scene hides for the update and restored before returning (the
+                default scene option hides groups 3–5; one that showed every group would leave them in).
         """
         mujoco = self._mj
         if geom_mask is not None:
