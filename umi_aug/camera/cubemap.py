@@ -429,8 +429,8 @@ class CubemapFisheyeRemap:
                 # cv2 rounds a coordinate to 1/32 texel, then reads floor and floor + 1: count either rounding
                 tol = 1.0 / 32.0
                 mx, my = np.asarray(map_x, dtype=np.float64), np.asarray(map_y, dtype=np.float64)
-                for x0 in {0: np.floor(mx - tol), 1: np.floor(mx + tol)}.values():
-                    for y0 in {0: np.floor(my - tol), 1: np.floor(my + tol)}.values():
+                for x0 in (np.floor(mx - tol), np.floor(mx + tol)):
+                    for y0 in (np.floor(my - tol), np.floor(my + tol)):
                         xi, yi = x0.astype(np.int64), y0.astype(np.int64)
                         for dy in (0, 1):
                             for dx in (0, 1):
