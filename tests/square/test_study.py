@@ -226,6 +226,40 @@ def test_a_fresh_machine_continues_from_the_record(tmp_path, monkeypatch):
     assert (tmp_path / "record" / "report.json").exists()
 
 
+def test_a_training_stopped_before_its_first_checkpoint_is_set_aside_and_trained_again(tmp_path, monkeypatch):
+    """A slice killed between train.py's first log row and its first checkpoint leaves logs.jsonl without
+    latest.ckpt; train.py refuses that folder (nothing to resume), so the study sets it aside and starts over."""
+    import torch
+
+    from umi_aug.policy.train_checks import prepare_run_folder
+
+    cfg = _cfg(tmp_path, "variants=[none]", "sweep_thetas=[]")
+    cell = {"name": "none_n10"}
+    run_dir = cfg.out / "runs" / "none_n10"
+    run_dir.mkdir(parents=True)
+    (run_dir / "logs.jsonl").write_text("".join(json.dumps({"step": i, "loss": 1.0}) + "\n" for i in range(1, 9)))
+    with pytest.raises(Exception, match="left no checkpoint"):  # what train.py says of it
+        prepare_run_folder(run_dir, st.checkpoint_path(cfg, cell), resume=True)
+    seen: list[bool] = []
+
+    def run(cmd, log_path):
+        prepare_run_folder(run_dir, st.checkpoint_path(cfg, cell), resume=True)  # train.py's own check, for real
+        seen.append((run_dir / "logs.jsonl").exists())
+        st.checkpoint_path(cfg, cell).parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"pickles": {"global_step": 1}}, st.checkpoint_path(cfg, cell))
+        (run_dir / "logs.jsonl").write_text(json.dumps({"step": 1}) + "\n")
+        return 0
+
+    monkeypatch.setattr(st, "_run", run)
+    st._step_train(cfg, cell)
+    assert seen == [False]
+    aside = [p for p in (cfg.out / "runs").iterdir() if p.name.startswith("none_n10.before-")]
+    assert len(aside) == 1 and len((aside[0] / "logs.jsonl").read_text().splitlines()) == 8  # kept, not deleted
+    # with a checkpoint, the folder is the run to resume: left where it is
+    st._step_train(cfg, cell)
+    assert seen == [False, True] and len([p for p in (cfg.out / "runs").iterdir() if p.is_dir()]) == 2
+
+
 def test_budget_stops_before_the_next_step_and_failures_are_recorded(tmp_path, monkeypatch):
     import types
 

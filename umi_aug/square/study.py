@@ -563,6 +563,11 @@ def _step_train(cfg: StudyConfig, cell: dict[str, Any]) -> dict[str, Any]:
         if not checkpoint_path(cfg, cell).exists() and stale.exists():
             # rollouts of an earlier checkpoint must not count towards the one trained now: set aside, not deleted
             stale.rename(stale.with_name(f"results.jsonl.before-{time.strftime('%Y%m%d-%H%M%S')}"))
+    run_dir = cfg.out / "runs" / cell["name"]
+    if not checkpoint_path(cfg, cell).exists() and (run_dir / "logs.jsonl").exists():
+        # a training stopped before its first checkpoint (e.g. the session ended): nothing to resume, and train.py
+        # refuses to append to its logs, so the folder is set aside (not deleted) and the cell trains from step 0
+        run_dir.rename(run_dir.with_name(f"{cell['name']}.before-{time.strftime('%Y%m%d-%H%M%S')}"))
     rc = _run(train_command(cfg, cell), cfg.out / "runs" / f"{cell['name']}.log")
     if rc != 0:
         raise StudyError(f"train {cell['name']}: exit status {rc}; see {cfg.out / 'runs' / (cell['name'] + '.log')}")
