@@ -107,9 +107,7 @@ def export_run(dataset: Path, work: Path, name: str, per_demo: int, fast_paths=N
     CPU seconds (this process, all its threads)."""
     import resource
 
-    from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
-    from umi_aug.augment.config import DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG
-    from umi_aug.augment.config import AugmentConfig, SplatStageConfig
+    from umi_aug.augment.config import AugmentConfig, dataset_splat_stage
     from umi_aug.augment.exporter import export
 
     import dataclasses
@@ -117,8 +115,7 @@ def export_run(dataset: Path, work: Path, name: str, per_demo: int, fast_paths=N
     base = AugmentConfig()
     cfg = dataclasses.replace(
         base, mode="freespace", n_per_demo=per_demo, **executor,
-        splat=SplatStageConfig(iterations=DATASET_SPLAT_ITERATIONS, max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS,
-                               scale_reg=DATASET_SPLAT_SCALE_REG, coarse_downscale=DATASET_SPLAT_COARSE_DOWNSCALE),
+        splat=dataset_splat_stage(),
         recon=dataclasses.replace(base.recon, sfm=dataclasses.replace(base.recon.sfm, mode="known_poses")))
     out = work / f"{name}.zarr"
     shutil.rmtree(out, ignore_errors=True)

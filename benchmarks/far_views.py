@@ -26,6 +26,9 @@ Settings (``--settings``):
 * ``one demo, SfM every 2nd frame``: the default with every 2nd frame triangulated.
 * ``two demos pooled``: both demos' frames build one scene (``--scene-group 2``; the session's demos share the
   tag frame and the table), with the shell: what pooling the episodes of one place does (issue #34 item 2).
+* ``one demo, 3DGS schedule before (...)``: the default's scene trained as a dataset's scenes were before
+  2026-11-29: 1,200 steps (first half at half size) at the trainer's learning rates and growth, where the default is
+  600 steps with ``DATASET_SPLAT_SCHEDULE`` (``umi_aug/augment/splat_defaults.py``; ``docs/real_scale.md`` 1f).
 * ``scan + demos``: the session path (``umi-aug augment <session>``): the mapping scan's frames and both demos
   (the upper bound a short scan gives).
 
@@ -49,8 +52,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+#: the dataset's 3DGS before 2026-11-29: 1,200 steps (coarse-to-fine) at the trainer's learning rates and growth
+SCHEDULE_BEFORE = "one demo, 3DGS schedule before (1,200 steps, the trainer's rates and growth)"
 SETTINGS = ("one demo, no shell", "one demo (default)", "one demo, before (every 2nd frame, 600 full-size steps)",
-            "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos")
+            "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos", SCHEDULE_BEFORE)
 
 
 def cone_ring_poses(T_ref: np.ndarray, radius: float, theta: float, n: int) -> np.ndarray:
@@ -101,9 +106,7 @@ def jittered_dataset(session: Path, out: Path, episodes: tuple[int, ...] = (0, 1
 
 def build(setting: str, session: Path, work: Path, iterations: int | None):
     """Demo 0's assets of the setting (scene built or loaded from ``work``) and the seconds it took."""
-    from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
-    from umi_aug.augment.config import DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG
-    from umi_aug.augment.config import AugmentConfig, SplatStageConfig
+    from umi_aug.augment.config import AugmentConfig, dataset_splat_stage
     from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset
     from umi_aug.augment.sources.session import prepare_session
 
@@ -114,12 +117,12 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
             base, splat=dataclasses.replace(base.splat, iterations=iterations))
         assets = prepare_session(session, work, dataclasses.replace(cfg, mode="freespace"), progress=False)
         return assets, time.perf_counter() - t0
-    splat = SplatStageConfig(iterations=iterations or DATASET_SPLAT_ITERATIONS,
-                             max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS, scale_reg=DATASET_SPLAT_SCALE_REG,
-                             coarse_downscale=DATASET_SPLAT_COARSE_DOWNSCALE)
-    before = "before" in setting
+    splat = dataset_splat_stage(iterations=iterations)
+    before = setting == "one demo, before (every 2nd frame, 600 full-size steps)"
     if before:
-        splat = dataclasses.replace(splat, iterations=600, coarse_downscale=1)
+        splat = dataclasses.replace(splat, iterations=600, coarse_downscale=1, extra={})
+    if setting == SCHEDULE_BEFORE:
+        splat = dataclasses.replace(splat, iterations=iterations or 1200, extra={})
     cfg = dataclasses.replace(base, mode="freespace", splat=splat)
     pooled = setting == "two demos pooled"
     inp = DatasetInput(episodes=(0, 1) if pooled else (0,), scene_group=2 if pooled else 1,

@@ -7,8 +7,10 @@ pre-contact frame, masked), so error stands against run time for every setting.
     python benchmarks/real_scene_cost.py --settings default "before (every 2nd frame, 600 steps, full size)"
 
 Each setting is one change to the defaults of ``umi-aug augment <dataset>`` (every 4th pre-grasp frame
-triangulated, 1,200 3DGS steps with the first half at half size, 30k Gaussians; rows recorded before 2026-11-27
-session 19 name changes to the earlier defaults: every 2nd frame, 600 full-size steps). The last five columns
+triangulated; 600 3DGS steps with the first half at half size, 30k Gaussians and the short schedule
+``DATASET_SPLAT_SCHEDULE``, ``umi_aug/augment/splat_defaults.py``). Rows recorded earlier name changes to the
+defaults of their time: before 2026-11-29, 1,200 steps at the trainer's rates and growth; before 2026-11-27 (session
+19), every 2nd frame and 600 full-size steps. ``splat.extra`` is laid over the schedule. The last five columns
 split a 3DGS step (ms per step, averaged over the run): the whole step, the rasteriser and the projection (forward
 + backward each), the optimiser and the loss's forward (its backward is inside the step's autograd); the scene
 column's parts are the triangulation's SIFT extraction, matching and known-pose mapping.
@@ -39,13 +41,17 @@ REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata" / "umi
 #: name → overrides: ``sfm.<field>`` (recon.sfm), ``splat.<field>`` (the 3DGS stage), ``inp.<field>`` (DatasetInput).
 SETTINGS: dict[str, dict[str, object]] = {
     "default": {},
+    "3DGS schedule before (1200 steps, the trainer's rates and growth)": {"splat.iterations": 1200,
+                                                                          "splat.trainer_schedule": True},
+    "3DGS 500 steps (600)": {"splat.iterations": 500},
+    "3DGS 800 steps (600)": {"splat.iterations": 800},
     "before (every 2nd frame, 600 steps, full size)": {"inp.sfm_stride": 2, "splat.iterations": 600,
-                                                       "splat.coarse_downscale": 1},
+                                                       "splat.coarse_downscale": 1, "splat.trainer_schedule": True},
     "features 1024": {"sfm.max_num_features": 1024},
     "no x2 upscale for SIFT": {"inp.sfm_upscale": 1},
     "every 2nd frame to SfM (4th)": {"inp.sfm_stride": 2},
     "overlap 3, no loop grid": {"sfm.overlap": 3, "sfm.loop_stride": 0},
-    "3DGS 600 steps (1200)": {"splat.iterations": 600},
+    "3DGS 300 steps (600)": {"splat.iterations": 300},
     "3DGS full size (first half at 1/2)": {"splat.coarse_downscale": 1},
     "3DGS coarse for 3/4 of the steps": {"splat.extra": {"coarse_fraction": 0.75}},
     "3DGS 15k Gaussians (30k)": {"splat.max_gaussians": 15_000},
@@ -65,20 +71,22 @@ SFM_PARTS = ("extract", "match", "map")
 
 def configs(overrides: dict[str, object]):
     """``(AugmentConfig, DatasetInput)`` of ``umi-aug augment <dataset>``'s defaults with ``overrides``."""
-    from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
-    from umi_aug.augment.config import DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG
-    from umi_aug.augment.config import AugmentConfig, SplatStageConfig
+    from umi_aug.augment.config import DATASET_SPLAT_SCHEDULE, AugmentConfig, dataset_splat_stage
     from umi_aug.augment.dataset_source import DatasetInput
 
     base = AugmentConfig()
     sfm = dataclasses.replace(base.recon.sfm, mode="known_poses")
-    splat = SplatStageConfig(iterations=DATASET_SPLAT_ITERATIONS, max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS,
-                             scale_reg=DATASET_SPLAT_SCALE_REG, coarse_downscale=DATASET_SPLAT_COARSE_DOWNSCALE)
+    splat = dataset_splat_stage()
     inp = DatasetInput()
     for key, value in overrides.items():
         part, name = key.split(".", 1)
         if part == "sfm":
             sfm = dataclasses.replace(sfm, **{name: value})
+        elif key == "splat.extra":  # laid over the dataset's schedule
+            splat = dataclasses.replace(splat, extra={**splat.extra, **value})
+        elif key == "splat.trainer_schedule":  # the trainer's own rates and growth instead of the dataset's
+            splat = dataclasses.replace(splat, extra={k: v for k, v in splat.extra.items()
+                                                      if k not in dict(DATASET_SPLAT_SCHEDULE)})
         elif part == "splat":
             splat = dataclasses.replace(splat, **{name: value})
         elif part == "inp":

@@ -101,7 +101,7 @@ def main() -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from umi_aug.augment.config import AugmentConfig, SplatStageConfig
+    from umi_aug.augment.config import AugmentConfig
     from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset
 
     ds = Path(args.dataset)
@@ -137,14 +137,10 @@ def main() -> int:
         from umi_aug.augment.export_report import summary_table
         from umi_aug.augment.exporter import export
 
-        from umi_aug.augment.cli import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
-        from umi_aug.augment.config import DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG
+        from umi_aug.augment.config import dataset_splat_stage
 
-        its = DATASET_SPLAT_ITERATIONS if args.augment_iterations is None else args.augment_iterations
         cfg = AugmentConfig(mode="both", n_per_demo=args.augment,
-                            splat=SplatStageConfig(iterations=its, max_gaussians=DATASET_SPLAT_MAX_GAUSSIANS,
-                                                   scale_reg=DATASET_SPLAT_SCALE_REG,
-                                                   coarse_downscale=DATASET_SPLAT_COARSE_DOWNSCALE))
+                            splat=dataset_splat_stage(iterations=args.augment_iterations))
         t1 = time.perf_counter()
         s = export(ds, work / "augmented.zarr.zip", cfg, work_dir=work / "export_work", resume=False)
         aug = {"wall_s": time.perf_counter() - t1, "n_augmented": s.n_augmented, "n_failed": s.n_failed,

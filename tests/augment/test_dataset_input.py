@@ -213,10 +213,11 @@ def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
     win over both."""
     import argparse
 
-    from umi_aug.augment.cli import (DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS, add_augment_parser,
-                                     config_from_args)
-    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG,
+    from umi_aug.augment.cli import add_augment_parser, config_from_args
+    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_ITERATIONS,
+                                        DATASET_SPLAT_MAX_GAUSSIANS, DATASET_SPLAT_SCALE_REG, DATASET_SPLAT_SCHEDULE,
                                         SESSION_SPLAT_SCALE_REG, AugmentConfig)
+    from umi_aug.splat.train import SplatTrainConfig
 
     parser = argparse.ArgumentParser()
     add_augment_parser(parser.add_subparsers())
@@ -229,13 +230,31 @@ def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
     assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS)
     assert cfg.splat.scale_reg == DATASET_SPLAT_SCALE_REG
     assert cfg.splat.coarse_downscale == DATASET_SPLAT_COARSE_DOWNSCALE == 2
+    # the short schedule reaches the trainer, and it is a valid one
+    tcfg = SplatTrainConfig(**cfg.splat.train_kwargs())
+    tcfg.check()
+    assert {k: getattr(tcfg, k) for k, _ in DATASET_SPLAT_SCHEDULE} == dict(DATASET_SPLAT_SCHEDULE)
+    assert tcfg.lr_sh0 > SplatTrainConfig.lr_sh0 and tcfg.refine_every < SplatTrainConfig.refine_every
     cfg = config_from_args(parser.parse_args(["augment", str(session), "--out", str(tmp_path / "o.zarr.zip")]))
     assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (base.iterations, base.max_gaussians)
     assert cfg.splat.scale_reg == base.scale_reg == SESSION_SPLAT_SCALE_REG
     assert cfg.splat.coarse_downscale == base.coarse_downscale == 1
+    assert cfg.splat.extra == {} and cfg.splat == base  # a session's scan keeps the trainer's schedule
     cfg = config_from_args(parser.parse_args(["augment", str(ds), "--out", "o.zarr.zip",
                                               "--splat-coarse-downscale", "1"]))
     assert cfg.splat.coarse_downscale == 1
     cfg = config_from_args(parser.parse_args(["augment", str(ds), "--out", "o.zarr.zip", "--splat-iterations", "7",
                                               "--splat-max-gaussians", "900"]))
     assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (7, 900)
+    assert cfg.splat.extra == dict(DATASET_SPLAT_SCHEDULE)  # the flags change the steps, not the schedule
+
+
+def test_dataset_splat_stage_lays_given_fields_over_the_dataset_defaults():
+    from umi_aug.augment.config import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_SCHEDULE, dataset_splat_stage
+
+    assert dataset_splat_stage().iterations == DATASET_SPLAT_ITERATIONS
+    assert dataset_splat_stage(iterations=None, coarse_downscale=None) == dataset_splat_stage()
+    st = dataset_splat_stage(iterations=0, extra={"lr_sh0": 0.5, "seed": 3})
+    assert st.iterations == 0  # 0 is given (the untrained init), not the default
+    assert st.extra == {**dict(DATASET_SPLAT_SCHEDULE), "lr_sh0": 0.5, "seed": 3}
+    assert dataset_splat_stage().extra is not dataset_splat_stage().extra  # no shared mutable default

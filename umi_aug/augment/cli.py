@@ -6,15 +6,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
+from umi_aug.augment.splat_defaults import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS
+
 __all__ = ["add_augment_parser", "cmd_augment", "config_from_args", "dataset_input_from_args", "check_args",
            "source_settings_from_args"]
 
-#: 3DGS defaults for a plain dataset (one episode's ~100 pre-contact 224² frames, not a scan): on UMI's real
-#: "cup in the wild" episode 1,200 steps, the first half at half size (``DATASET_SPLAT_COARSE_DOWNSCALE``), reach
-#: 27.3 dB held-out, the whole scene in 124 s on 2 cores with every 4th frame triangulated (600 full-size steps:
-#: 25.7 dB, 149 s with every 2nd; ``benchmarks/real_scene_cost.py``, docs/real_scale.md section 1b).
-DATASET_SPLAT_ITERATIONS = 1200
-DATASET_SPLAT_MAX_GAUSSIANS = 30_000
 #: ``--tcp-offset``: UMI's gripper has 0.205 m; a camera→TCP distance outside this range is a typo (mm, a sign)
 #: that used to fail only minutes later ("no splice frame", "points near the reachable region").
 DEFAULT_TCP_OFFSET_M = 0.205
@@ -41,7 +37,8 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
     p.add_argument("--cone-radius", type=float, default=0.15, help="start sphere radius r (metres)")
     p.add_argument("--splat-iterations", type=int, default=None,
                    help="3DGS training steps (0 = untrained init; default 1500 for a session's scan, "
-                        f"{DATASET_SPLAT_ITERATIONS} for a plain dataset's episode frames)")
+                        f"{DATASET_SPLAT_ITERATIONS} for a plain dataset's episode frames, with a short schedule's "
+                        "learning rates and growth: docs/real_scale.md section 1f)")
     p.add_argument("--splat-max-gaussians", type=int, default=None,
                    help=f"3DGS Gaussian budget (default 25000 for a session, {DATASET_SPLAT_MAX_GAUSSIANS} for a dataset)")
     p.add_argument("--splat-coarse-downscale", type=int, default=None, metavar="F",
@@ -94,27 +91,22 @@ def add_augment_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentPa
 
 def config_from_args(args: argparse.Namespace):
     """The :class:`AugmentConfig` of parsed arguments."""
-    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG, AugmentConfig,
-                                        ObstacleConfig, OverlayConfig, SplatStageConfig)
+    from umi_aug.augment.config import (AugmentConfig, ObstacleConfig, OverlayConfig, SplatStageConfig,
+                                        dataset_splat_stage)
     from umi_aug.augment.sources import source_kind
 
     base = AugmentConfig()
-    dataset = source_kind(args.session) == "dataset"
-    iterations = args.splat_iterations
-    if iterations is None:
-        iterations = DATASET_SPLAT_ITERATIONS if dataset else base.splat.iterations
-    max_gaussians = args.splat_max_gaussians
-    if max_gaussians is None:
-        max_gaussians = DATASET_SPLAT_MAX_GAUSSIANS if dataset else base.splat.max_gaussians
-    coarse = getattr(args, "splat_coarse_downscale", None)
-    if coarse is None:
-        coarse = DATASET_SPLAT_COARSE_DOWNSCALE if dataset else base.splat.coarse_downscale
+    given = {"iterations": args.splat_iterations, "max_gaussians": args.splat_max_gaussians,
+             "coarse_downscale": getattr(args, "splat_coarse_downscale", None)}
+    if source_kind(args.session) == "dataset":
+        splat = dataset_splat_stage(**given)
+    else:
+        splat = SplatStageConfig(**{k: (getattr(base.splat, k) if v is None else v) for k, v in given.items()},
+                                 scale_reg=base.splat.scale_reg)
     return AugmentConfig(
         mode=args.mode, n_per_demo=args.n_per_demo, seed=args.seed, image_size=args.image_size,
         cone_half_angle_deg=args.cone_deg, cone_radius_m=args.cone_radius, max_attempts=args.max_attempts,
-        splat=SplatStageConfig(iterations=iterations, max_gaussians=max_gaussians,
-                               scale_reg=DATASET_SPLAT_SCALE_REG if dataset else base.splat.scale_reg,
-                               coarse_downscale=int(coarse)),
+        splat=splat,
         recon=dataclasses.replace(base.recon, sfm=dataclasses.replace(base.recon.sfm, mode=args.sfm_mode)),
         obstacle=ObstacleConfig(assets=tuple(args.obstacle)) if args.obstacle else ObstacleConfig(),
         overlay=OverlayConfig(mask=args.mask, mirrors=args.mirrors), include_original=not args.no_original,
