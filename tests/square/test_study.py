@@ -260,6 +260,16 @@ def test_a_training_stopped_before_its_first_checkpoint_is_set_aside_and_trained
     assert seen == [False, True] and len([p for p in (cfg.out / "runs").iterdir() if p.is_dir()]) == 2
 
 
+def test_a_step_that_succeeds_after_a_failure_keeps_no_error(tmp_path):
+    state = st._State(tmp_path / "study_state.json")
+    state.record("train/none_n25", 2.0, False, error="train none_n25: exit status 2")
+    state.record("train/none_n25", 60.0, True, checkpoint="c.ckpt")
+    row = json.loads((tmp_path / "study_state.json").read_text())["steps"]["train/none_n25"]
+    assert row["done"] and "error" not in row and row["seconds"] == 62.0 and row["checkpoint"] == "c.ckpt"
+    state.record("eval/none_n25", 5.0, False, error="boom")
+    assert st._State(tmp_path / "study_state.json").data["steps"]["eval/none_n25"]["error"] == "boom"
+
+
 def test_budget_stops_before_the_next_step_and_failures_are_recorded(tmp_path, monkeypatch):
     import types
 

@@ -295,6 +295,8 @@ class _State:
             row["reruns"] = int(row.get("reruns", 0)) + 1
             row.pop("error", None)
         row["seconds"] = float(row.get("seconds", 0.0)) + float(seconds)
+        if done:  # an earlier attempt's error no longer describes the step
+            row.pop("error", None)
         row.update(done=bool(done), finished_unix=time.time(), **info)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.path, json.dumps(self.data, indent=1) + "\n")
