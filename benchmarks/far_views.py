@@ -54,7 +54,9 @@ if str(ROOT) not in sys.path:
 
 #: the dataset's 3DGS before 2026-11-29: 1,200 steps (coarse-to-fine) at the trainer's learning rates and growth
 SCHEDULE_BEFORE = "one demo, 3DGS schedule before (1,200 steps, the trainer's rates and growth)"
-SETTINGS = ("one demo, no shell", "one demo (default)", "one demo, before (every 2nd frame, 600 full-size steps)",
+#: the dataset defaults before 2026-11-27: every 2nd frame triangulated, 600 full-size steps, the trainer's schedule
+DEFAULTS_BEFORE = "one demo, before (every 2nd frame, 600 full-size steps)"
+SETTINGS = ("one demo, no shell", "one demo (default)", DEFAULTS_BEFORE,
             "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos", SCHEDULE_BEFORE)
 
 
@@ -118,7 +120,7 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
         assets = prepare_session(session, work, dataclasses.replace(cfg, mode="freespace"), progress=False)
         return assets, time.perf_counter() - t0
     splat = dataset_splat_stage(iterations=iterations)
-    before = setting == "one demo, before (every 2nd frame, 600 full-size steps)"
+    before = setting == DEFAULTS_BEFORE
     if before:
         splat = dataclasses.replace(splat, iterations=600, coarse_downscale=1, extra={})
     if setting == SCHEDULE_BEFORE:
