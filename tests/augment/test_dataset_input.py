@@ -258,3 +258,31 @@ def test_dataset_splat_stage_lays_given_fields_over_the_dataset_defaults():
     assert st.iterations == 0  # 0 is given (the untrained init), not the default
     assert st.extra == {**dict(DATASET_SPLAT_SCHEDULE), "lr_sh0": 0.5, "seed": 3}
     assert dataset_splat_stage().extra is not dataset_splat_stage().extra  # no shared mutable default
+
+
+def test_train_py_aug_builds_the_scene_umi_aug_augment_builds(tmp_path):
+    """``train.py aug=freespace`` (``aug.splat_*`` at their null defaults) trains each input's scene with exactly the
+    3DGS stage ``umi-aug augment`` trains without 3DGS flags — the same stage key, so one cached scene serves both —
+    and a given ``aug.splat_*`` value wins as the command line's flag does."""
+    import argparse
+
+    from umi_aug.augment.cli import add_augment_parser, config_from_args
+    from umi_aug.augment.config import splat_key
+    from umi_aug.policy.config import AugConfig
+    from umi_aug.policy.workspace import aug_splat_stage
+
+    parser = argparse.ArgumentParser()
+    add_augment_parser(parser.add_subparsers())
+    ds = tmp_path / "dataset.zarr.zip"
+    ds.write_bytes(b"")
+    session = tmp_path / "session"
+    (session / "demos").mkdir(parents=True)
+    for src, plain in ((ds, True), (session, False)):
+        cli = config_from_args(parser.parse_args(["augment", str(src), "--out", str(tmp_path / "o.zarr.zip")]))
+        assert aug_splat_stage(AugConfig(), plain) == cli.splat
+        assert splat_key(aug_splat_stage(AugConfig(), plain)) == splat_key(cli.splat)
+        cli = config_from_args(parser.parse_args(["augment", str(src), "--out", "o.zarr.zip", "--splat-iterations",
+                                                  "7", "--splat-coarse-downscale", "1"]))
+        assert aug_splat_stage(AugConfig(splat_iterations=7, splat_coarse_downscale=1), plain) == cli.splat
+    st = aug_splat_stage(AugConfig(splat_scale_reg=0.5, splat_max_gaussians=900), True)
+    assert (st.scale_reg, st.max_gaussians, st.iterations) == (0.5, 900, aug_splat_stage(AugConfig(), True).iterations)

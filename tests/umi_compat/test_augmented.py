@@ -37,32 +37,41 @@ def test_freespace_augmentation_through_umis_construction_path(aug_session, tmp_
     sd = ds.get_normalizer().state_dict()
     assert {"params_dict.action.scale", "params_dict.camera0_rgb.input_stats.std"} <= set(sd)
     # the stage cache records the 3DGS settings it was built with: a second dataset takes them from there
-    from umi_aug.umi_compat.dataset import _cached_splat_settings
+    from umi_aug.umi_compat.dataset import _cached_splat_stage
 
     from umi_aug.augment.config import SESSION_SPLAT_SCALE_REG
 
-    cached = _cached_splat_settings(tmp_path / "work")
-    assert cached["iterations"] == 0 and cached["scale_reg"] == SESSION_SPLAT_SCALE_REG  # a session's default
+    cached = _cached_splat_stage(tmp_path / "work")
+    assert cached.iterations == 0 and cached.scale_reg == SESSION_SPLAT_SCALE_REG  # a session's default
 
 
-def test_cached_splat_settings_of_a_cache_from_before_scale_reg(tmp_path):
-    """A stage cache trained before ``SplatStageConfig.scale_reg`` / ``coarse_downscale`` existed (its settings have
-    no such keys) was trained with the trainer's 0.01 at full size: those values are what a dataset reusing the cache
-    asks for (the same stage key, no retraining); no manifest, no settings."""
+def test_cached_splat_stage_is_the_stage_the_cache_was_keyed_with(tmp_path):
+    """A dataset reusing a stage cache asks for the stage its scene was trained with, every setting included: a cache
+    trained before ``SplatStageConfig.scale_reg`` / ``coarse_downscale`` existed (no such keys) stands for the
+    trainer's 0.01 at full size; a plain dataset's scene groups (``scenes/<group>/splat``) carry the short schedule
+    in ``extra``. Rebuilt from the manifest, the stage hashes to the manifest's own settings (no retraining). No
+    manifest, no stage."""
     import json
 
-    from umi_aug.augment.config import TRAINER_SCALE_REG
-    from umi_aug.umi_compat.dataset import _cached_splat_settings
+    from umi_aug.augment.config import TRAINER_SCALE_REG, dataset_splat_stage, splat_key
+    from umi_aug.umi_compat.dataset import _cached_splat_stage
 
-    assert _cached_splat_settings(tmp_path / "work") == {}
-    (tmp_path / "work" / "splat").mkdir(parents=True)
-    (tmp_path / "work" / "splat" / "manifest.json").write_text(json.dumps(
-        {"settings": {"splat": {"iterations": 1500, "max_gaussians": 25000, "sh_degree": 3}}}))
-    assert _cached_splat_settings(tmp_path / "work") == {"iterations": 1500, "max_gaussians": 25000,
-                                                         "scale_reg": TRAINER_SCALE_REG, "coarse_downscale": 1}
-    # a coarse-to-fine scene (a plain dataset's default) reports its factor, so the dataset reuses it
-    (tmp_path / "work" / "splat" / "manifest.json").write_text(json.dumps(
-        {"settings": {"splat": {"iterations": 1200, "max_gaussians": 30000, "scale_reg": 0.5,
-                                "coarse_downscale": 2}}}))
-    assert _cached_splat_settings(tmp_path / "work") == {"iterations": 1200, "max_gaussians": 30000,
-                                                         "scale_reg": 0.5, "coarse_downscale": 2}
+    def write(stage_dir, splat):
+        stage_dir.mkdir(parents=True, exist_ok=True)
+        (stage_dir / "manifest.json").write_text(json.dumps({"settings": {"splat": splat}}))
+
+    assert _cached_splat_stage(tmp_path / "work") is None
+    old = {"iterations": 1500, "max_gaussians": 25000, "sh_degree": 3, "holdout_every": 8, "image_size": None,
+           "extra": {}}
+    write(tmp_path / "work" / "splat", old)
+    st = _cached_splat_stage(tmp_path / "work")
+    assert (st.iterations, st.max_gaussians, st.scale_reg, st.coarse_downscale) == (1500, 25000, TRAINER_SCALE_REG, 1)
+    assert splat_key(st) == old
+    # a plain dataset's scene, as `umi-aug augment <dataset>` trains it, found under its scene group
+    plain = tmp_path / "plain"
+    key = json.loads(json.dumps(splat_key(dataset_splat_stage())))  # as the manifest stores it
+    write(plain / "scenes" / "g0" / "splat", key)
+    st = _cached_splat_stage(plain)
+    assert st == dataset_splat_stage() and splat_key(st) == key and st.extra and st.coarse_downscale == 2
+    write(plain / "scenes" / "g1" / "splat", {**key, "iterations": 7})  # a second group's other settings: g0's
+    assert _cached_splat_stage(plain) == dataset_splat_stage()

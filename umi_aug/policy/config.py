@@ -187,9 +187,11 @@ class AugConfig:
     #: start-pose cone (paper: 50 deg, 0.15 m)
     cone_half_angle_deg: float = 50.0
     cone_radius_m: float = 0.15
-    #: 3DGS training of the session scene (iterations, Gaussian budget)
-    splat_iterations: int = 1500
-    splat_max_gaussians: int = 25000
+    #: 3DGS training of the scene (steps, Gaussian budget); None = umi-aug's default for the input, as
+    #: ``umi-aug augment`` trains it (a session: 1500 / 25000; a plain dataset: 600 / 30000 with the short schedule
+    #: of ``umi_aug/augment/splat_defaults.py``)
+    splat_iterations: Optional[int] = None
+    splat_max_gaussians: Optional[int] = None
     #: 3DGS scale regulariser; None = umi-aug's default for the input (a session: 1.0, a plain dataset: 0.01)
     splat_scale_reg: Optional[float] = None
     #: 3DGS coarse-to-fine factor (first half of the steps at 1/F size); None = by input (a session: 1, a plain

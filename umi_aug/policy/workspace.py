@@ -33,26 +33,42 @@ import torch
 from umi_aug.errors import PolicyError
 from umi_aug.policy.augmented_dataset import AugmentedUmiDataset
 from umi_aug.policy.checkpoint import load_checkpoint, save_checkpoint
-from umi_aug.policy.config import AUG_MODES, TrainConfig, check_aug, check_config, config_to_dict, structured_config
+from umi_aug.policy.config import (AUG_MODES, AugConfig, TrainConfig, check_aug, check_config, config_to_dict,
+                                  structured_config)
 from umi_aug.policy.dataset import UmiPolicyDataset
 from umi_aug.policy.chunk_policy import ChunkPolicy
 from umi_aug.policy.ema import EMA
 from umi_aug.policy.heads import build_policy
 from umi_aug.runtime import configure_threads
 
-__all__ = ["TrainWorkspace", "resolve_dataset_path", "seed_everything", "build_optimizer", "build_lr_scheduler",
-           "iter_jsonl", "make_loader", "loader_context", "EpochSampler", "MemoryBatches", "worker_init"]
+__all__ = ["TrainWorkspace", "resolve_dataset_path", "aug_splat_stage", "build_augmented_dataset", "seed_everything",
+           "build_optimizer", "build_lr_scheduler", "iter_jsonl", "make_loader", "loader_context", "EpochSampler",
+           "MemoryBatches", "worker_init"]
 
 log = logging.getLogger(__name__)
 
 
-def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: TrainConfig):
-    """``aug=freespace|obstacle|both``: prepare the session holding ``dataset_path`` (cached stages) and wrap the
-    original training split in an :class:`~umi_aug.policy.augmented_dataset.AugmentedUmiDataset`."""
+def aug_splat_stage(a: AugConfig, plain: bool):
+    """The 3DGS stage (``umi_aug.augment.SplatStageConfig``) of ``aug.splat_*``: a field left None takes umi-aug's
+    default for the input, exactly as ``umi-aug augment`` without 3DGS flags trains it, so both build (and share)
+    the same cached scene — a plain dataset's ``dataset_splat_stage()`` (600 steps, 30k Gaussians, the short
+    schedule), a session's ``SplatStageConfig()`` (1500 steps, 25k Gaussians)."""
     # lazy, start-up: cv2, scipy
-    from umi_aug.augment import AugmentConfig, SplatStageConfig, prepare_session
-    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_SCALE_REG,
-                                        SESSION_SPLAT_SCALE_REG)
+    from umi_aug.augment.config import SplatStageConfig, dataset_splat_stage
+
+    given = {"iterations": a.splat_iterations, "max_gaussians": a.splat_max_gaussians,
+             "scale_reg": a.splat_scale_reg, "coarse_downscale": a.splat_coarse_downscale}
+    if plain:
+        return dataset_splat_stage(**given)
+    return SplatStageConfig(**{k: v for k, v in given.items() if v is not None})
+
+
+def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: TrainConfig, splat=None):
+    """``aug=freespace|obstacle|both``: prepare the session holding ``dataset_path`` (cached stages) and wrap the
+    original training split in an :class:`~umi_aug.policy.augmented_dataset.AugmentedUmiDataset`. ``splat``: the
+    3DGS stage to use instead of :func:`aug_splat_stage`'s (UMI's drop-in passes a stage cache's own settings)."""
+    # lazy, start-up: cv2, scipy
+    from umi_aug.augment import AugmentConfig, prepare_session
 
     a = cfg.aug
     session = Path(a.session_dir).absolute() if a.session_dir else dataset_path.parent
@@ -69,13 +85,7 @@ def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: Tr
     acfg = AugmentConfig(mode=modes[0] if len(modes) == 1 else "both", seed=a.seed,
                          cone_half_angle_deg=a.cone_half_angle_deg, cone_radius_m=a.cone_radius_m,
                          image_size=cfg.task.image_size,
-                         splat=SplatStageConfig(iterations=a.splat_iterations, max_gaussians=a.splat_max_gaussians,
-                                                scale_reg=(a.splat_scale_reg if a.splat_scale_reg is not None else
-                                                           DATASET_SPLAT_SCALE_REG if plain else
-                                                           SESSION_SPLAT_SCALE_REG),
-                                                coarse_downscale=(a.splat_coarse_downscale
-                                                                  if a.splat_coarse_downscale is not None else
-                                                                  DATASET_SPLAT_COARSE_DOWNSCALE if plain else 1)))
+                         splat=splat if splat is not None else aug_splat_stage(a, plain))
     if plain:
         from umi_aug.augment.dataset_source import (DatasetInput, parse_scene_group,  # lazy, start-up: cv2
                                                     prepare_dataset)

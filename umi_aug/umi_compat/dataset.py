@@ -258,22 +258,33 @@ def _cache_copy(dataset_path: Path, cache_dir: str | os.PathLike) -> Path:
     return out
 
 
-def _cached_splat_settings(work_dir: Path) -> dict:
-    """The 3DGS settings (``iterations``, ``max_gaussians``, ``scale_reg``, ``coarse_downscale``) a prepared session's
-    stage cache was trained with (``<work_dir>/splat/manifest.json``), or {} when there is none. A cache without
-    ``scale_reg`` was trained with the trainer's 0.01, one without ``coarse_downscale`` at full size (the key
-    leaves those values out)."""
+def _cached_splat_stage(work_dir: Path):
+    """The 3DGS stage (``umi_aug.augment.SplatStageConfig``) a stage cache's scene was trained with, exactly (so a
+    dataset asking for it gets the same stage key and reuses the scene), or None when ``work_dir`` holds none. Read
+    from ``<work_dir>/splat/manifest.json`` (a session) or the first ``<work_dir>/scenes/<group>/splat/manifest.json``
+    (a plain dataset's scene groups). A key leaves ``scale_reg`` out at the trainer's 0.01 and ``coarse_downscale``
+    at 1 (caches trained before those settings existed): those are the values it stands for."""
     # lazy, start-up: cv2, scipy
-    from umi_aug.augment.cache import read_manifest
-    from umi_aug.augment.config import TRAINER_SCALE_REG
+    import dataclasses
 
-    man = read_manifest(work_dir / "splat") or {}
-    splat = (man.get("settings") or {}).get("splat") or {}
-    out: dict = {k: int(splat[k]) for k in ("iterations", "max_gaussians") if isinstance(splat.get(k), int)}
-    if out:
-        out["scale_reg"] = float(splat.get("scale_reg", TRAINER_SCALE_REG))
-        out["coarse_downscale"] = int(splat.get("coarse_downscale", 1))
-    return out
+    from umi_aug.augment.cache import read_manifest
+    from umi_aug.augment.config import TRAINER_SCALE_REG, SplatStageConfig
+
+    found = []
+    for stage_dir in [work_dir / "splat", *sorted((work_dir / "scenes").glob("*/splat"))]:
+        splat = ((read_manifest(stage_dir) or {}).get("settings") or {}).get("splat") or {}
+        if isinstance(splat.get("iterations"), int) and isinstance(splat.get("max_gaussians"), int):
+            found.append((stage_dir, splat))
+    if not found:
+        return None
+    stage_dir, splat = found[0]
+    if any(other != splat for _, other in found[1:]):
+        log.warning("UmiAugDataset: the scenes in %s were trained with different 3DGS settings; taking %s's",
+                    work_dir, stage_dir)
+    names = {f.name for f in dataclasses.fields(SplatStageConfig)}
+    kw = {"scale_reg": TRAINER_SCALE_REG, "coarse_downscale": 1,
+          **{k: (dict(v) if k == "extra" else v) for k, v in splat.items() if k in names}}
+    return SplatStageConfig(**kw)
 
 
 def _grasp_flags(ds) -> np.ndarray:
@@ -304,8 +315,9 @@ class UmiAugDataset(_dataset_base()):
         rerender_fraction: fraction in [0, 1) of the augmented samples drawn from a demo's re-rendered copy (its
             own labels, its approach frames rendered by the scene model).
         aug_seed: root seed of the augmented episodes and slot draws.
-        splat_iterations / splat_max_gaussians: 3DGS training of the scene; None = what the stage cache in
-            ``work_dir`` was trained with, else umi-aug's defaults (1500 / 25000).
+        splat_iterations / splat_max_gaussians: 3DGS training of the scene; both None = what the stage cache in
+            ``work_dir`` was trained with (every setting), else umi-aug's default for the input, as ``umi-aug
+            augment`` trains it (a session: 1500 / 25000; a plain dataset: 600 / 30000 with the short schedule).
         cone_half_angle_deg / cone_radius_m: start-pose cone (paper: 50°, 0.15 m).
         plan_cache_size: planned episodes kept per DataLoader worker.
         tcp_offset_m / scene_group: plain-dataset input (UMI's camera→TCP offset in metres; episodes per scene,
@@ -402,26 +414,18 @@ class UmiAugDataset(_dataset_base()):
         plain = not session_dir and not (session / "demos").is_dir()
         work = (Path(work_dir).absolute() if work_dir else
                 path.absolute().with_name(path.name + ".augment") if plain else session / "augment")
-        cached = _cached_splat_settings(work)
-        defaults = AugConfig()
-        iters = splat_iterations if splat_iterations is not None else cached.get("iterations",
-                                                                                  defaults.splat_iterations)
-        budget = splat_max_gaussians if splat_max_gaussians is not None else cached.get("max_gaussians",
-                                                                                        defaults.splat_max_gaussians)
-        if cached and splat_iterations is None:
-            log.info("UmiAugDataset: 3DGS settings from the stage cache %s: %d iterations, ≤%d Gaussians",
-                     work / "splat", iters, budget)
+        cached = _cached_splat_stage(work) if splat_iterations is None and splat_max_gaussians is None else None
+        if cached is not None:
+            log.info("UmiAugDataset: 3DGS settings from the stage cache in %s: %d steps, ≤%d Gaussians", work,
+                     cached.iterations, cached.max_gaussians)
         a = AugConfig(name=self.aug, session_dir=str(session) if session_dir else "", work_dir=str(work),
                       ratio=float(ratio), n_aug_per_demo=int(n_aug_per_demo), seed=int(aug_seed),
                       cone_half_angle_deg=float(cone_half_angle_deg), cone_radius_m=float(cone_radius_m),
-                      splat_iterations=int(iters), splat_max_gaussians=int(budget),
-                      # the cached scene's regulariser when the 3DGS settings come from the cache, else the default
-                      splat_scale_reg=cached.get("scale_reg") if splat_iterations is None else None,
-                      splat_coarse_downscale=cached.get("coarse_downscale") if splat_iterations is None else None,
+                      splat_iterations=splat_iterations, splat_max_gaussians=splat_max_gaussians,
                       plan_cache_size=int(plan_cache_size), tcp_offset_m=float(tcp_offset_m),
                       scene_group=scene_group, rerender_fraction=float(rerender_fraction))
         check_aug(a)
-        return build_augmented_dataset(self._train, path.absolute(), TrainConfig(task=self.task, aug=a))
+        return build_augmented_dataset(self._train, path.absolute(), TrainConfig(task=self.task, aug=a), splat=cached)
 
     # ------------------------------------------------------------------ UMI's BaseDataset interface
     @property
