@@ -208,16 +208,11 @@ def test_real_demonstration_end_to_end(tmp_path):
     assert Path(s.pictures["contact_sheet"]).is_file()
 
 
-def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
-    """A plain dataset gets the measured episode-frame 3DGS defaults, a session the scan defaults; explicit flags
-    win over both."""
+def _augment_parser_and_inputs(tmp_path):
+    """``umi-aug augment``'s parser, an (empty) plain dataset file and a session folder, for config_from_args."""
     import argparse
 
-    from umi_aug.augment.cli import add_augment_parser, config_from_args
-    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_ITERATIONS,
-                                        DATASET_SPLAT_MAX_GAUSSIANS, DATASET_SPLAT_SCALE_REG, DATASET_SPLAT_SCHEDULE,
-                                        SESSION_SPLAT_SCALE_REG, AugmentConfig)
-    from umi_aug.splat.train import SplatTrainConfig
+    from umi_aug.augment.cli import add_augment_parser
 
     parser = argparse.ArgumentParser()
     add_augment_parser(parser.add_subparsers())
@@ -225,6 +220,19 @@ def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
     ds.write_bytes(b"")
     session = tmp_path / "session"
     (session / "demos").mkdir(parents=True)
+    return parser, ds, session
+
+
+def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
+    """A plain dataset gets the measured episode-frame 3DGS defaults, a session the scan defaults; explicit flags
+    win over both."""
+    from umi_aug.augment.cli import config_from_args
+    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_ITERATIONS,
+                                        DATASET_SPLAT_MAX_GAUSSIANS, DATASET_SPLAT_SCALE_REG, DATASET_SPLAT_SCHEDULE,
+                                        SESSION_SPLAT_SCALE_REG, AugmentConfig)
+    from umi_aug.splat.train import SplatTrainConfig
+
+    parser, ds, session = _augment_parser_and_inputs(tmp_path)
     base = AugmentConfig().splat
     cfg = config_from_args(parser.parse_args(["augment", str(ds), "--out", str(tmp_path / "o.zarr.zip")]))
     assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS)
@@ -264,19 +272,12 @@ def test_train_py_aug_builds_the_scene_umi_aug_augment_builds(tmp_path):
     """``train.py aug=freespace`` (``aug.splat_*`` at their null defaults) trains each input's scene with exactly the
     3DGS stage ``umi-aug augment`` trains without 3DGS flags — the same stage key, so one cached scene serves both —
     and a given ``aug.splat_*`` value wins as the command line's flag does."""
-    import argparse
-
-    from umi_aug.augment.cli import add_augment_parser, config_from_args
+    from umi_aug.augment.cli import config_from_args
     from umi_aug.augment.config import splat_key
     from umi_aug.policy.config import AugConfig
     from umi_aug.policy.workspace import aug_splat_stage
 
-    parser = argparse.ArgumentParser()
-    add_augment_parser(parser.add_subparsers())
-    ds = tmp_path / "dataset.zarr.zip"
-    ds.write_bytes(b"")
-    session = tmp_path / "session"
-    (session / "demos").mkdir(parents=True)
+    parser, ds, session = _augment_parser_and_inputs(tmp_path)
     for src, plain in ((ds, True), (session, False)):
         cli = config_from_args(parser.parse_args(["augment", str(src), "--out", str(tmp_path / "o.zarr.zip")]))
         assert aug_splat_stage(AugConfig(), plain) == cli.splat
