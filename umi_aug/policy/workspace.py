@@ -25,7 +25,7 @@ import sys
 import time
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 import torch
@@ -41,6 +41,9 @@ from umi_aug.policy.ema import EMA
 from umi_aug.policy.heads import build_policy
 from umi_aug.runtime import configure_threads
 
+if TYPE_CHECKING:  # annotations only: umi_aug.augment loads cv2 and scipy at import
+    from umi_aug.augment.config import SplatStageConfig
+
 __all__ = ["TrainWorkspace", "resolve_dataset_path", "aug_splat_stage", "build_augmented_dataset", "seed_everything",
            "build_optimizer", "build_lr_scheduler", "iter_jsonl", "make_loader", "loader_context", "EpochSampler",
            "MemoryBatches", "worker_init"]
@@ -48,7 +51,7 @@ __all__ = ["TrainWorkspace", "resolve_dataset_path", "aug_splat_stage", "build_a
 log = logging.getLogger(__name__)
 
 
-def aug_splat_stage(a: AugConfig, plain: bool):
+def aug_splat_stage(a: AugConfig, plain: bool) -> SplatStageConfig:
     """The 3DGS stage (``umi_aug.augment.SplatStageConfig``) of ``aug.splat_*``: a field left None takes umi-aug's
     default for the input, exactly as ``umi-aug augment`` without 3DGS flags trains it, so both build (and share)
     the same cached scene — a plain dataset's ``dataset_splat_stage()`` (600 steps, 30k Gaussians, the short
@@ -63,7 +66,8 @@ def aug_splat_stage(a: AugConfig, plain: bool):
     return SplatStageConfig(**{k: v for k, v in given.items() if v is not None})
 
 
-def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: TrainConfig, splat=None):
+def build_augmented_dataset(train: UmiPolicyDataset, dataset_path: Path, cfg: TrainConfig,
+                            splat: SplatStageConfig | None = None) -> AugmentedUmiDataset:
     """``aug=freespace|obstacle|both``: prepare the session holding ``dataset_path`` (cached stages) and wrap the
     original training split in an :class:`~umi_aug.policy.augmented_dataset.AugmentedUmiDataset`. ``splat``: the
     3DGS stage to use instead of :func:`aug_splat_stage`'s (UMI's drop-in passes a stage cache's own settings)."""

@@ -48,13 +48,16 @@ import logging
 import os
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import TYPE_CHECKING, Any, Mapping, Optional
 
 import numpy as np
 import torch
 
 from umi_aug.errors import DatasetError, PolicyError
 from umi_aug.umi_compat.normalizer import umi_normalizer, umi_normalizer_fields
+
+if TYPE_CHECKING:  # annotations only: umi_aug.augment loads cv2 and scipy at import
+    from umi_aug.augment.config import SplatStageConfig
 
 __all__ = ["UmiAugDataset", "task_from_shape_meta", "source_demo_groups", "split_val_mask", "UMI_DATASET_DEFAULTS",
            "AUG_CHOICES", "SPLIT_BY"]
@@ -258,7 +261,7 @@ def _cache_copy(dataset_path: Path, cache_dir: str | os.PathLike) -> Path:
     return out
 
 
-def _cached_splat_stage(work_dir: Path):
+def _cached_splat_stage(work_dir: Path) -> SplatStageConfig | None:
     """The 3DGS stage (``umi_aug.augment.SplatStageConfig``) a stage cache's scene was trained with, exactly (so a
     dataset asking for it gets the same stage key and reuses the scene), or None when ``work_dir`` holds none. Read
     from ``<work_dir>/splat/manifest.json`` (a session) or the first ``<work_dir>/scenes/<group>/splat/manifest.json``
