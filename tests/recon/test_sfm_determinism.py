@@ -1,6 +1,7 @@
 """Known-pose SfM gives the same cloud run after run (issue #34 item 3: a scene built by a Ray worker must equal
 the one-process build byte for byte). With 2 extraction threads COLMAP's keypoints came out in a run-dependent
-order, and its multi-threaded triangulation moved the points in their last bits."""
+order, and its multi-threaded triangulation moved the points in their last bits. Extraction in blocks of frames
+(one thread each, joined in order) gives the bytes of one thread."""
 
 from __future__ import annotations
 
@@ -38,9 +39,10 @@ def test_known_pose_sfm_on_real_frames_is_deterministic(tmp_path):
         paths.append(tmp_path / f"{int(i):05d}.png")
         cv2.imwrite(str(paths[-1]), cv2.cvtColor(im, cv2.COLOR_RGB2BGR))
     names = [f"ep/{p.name}" for p in paths]
-    cfg = SfmConfig(mode="known_poses", num_threads=2)
+    # 2 threads (the default; extraction in 2 blocks, recon.colmap_blocks) three times, then 1 thread
+    cfgs = [SfmConfig(mode="known_poses", num_threads=2)] * 3 + [SfmConfig(mode="known_poses", num_threads=1)]
     runs = [run_sfm(paths, names, intr, tmp_path / f"w{k}", cfg, T_world_cam=T[idx], masks=feature_mask(intr))
-            for k in range(3)]
+            for k, cfg in enumerate(cfgs)]
     assert len(runs[0].points) > 100
     for r in runs[1:]:
         assert r.points.shape == runs[0].points.shape

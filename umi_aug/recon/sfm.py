@@ -33,6 +33,7 @@ from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.camera.masks import predefined_mask
 from umi_aug.errors import ReconError
 from umi_aug.recon import constants as C
+from umi_aug.recon.colmap_blocks import extract_in_blocks
 from umi_aug.recon.session_io import check_image_sizes
 from umi_aug.runtime import restore_python_signal_handlers
 
@@ -72,13 +73,15 @@ class SfmConfig:
         pose_pair_max_dist_m / pose_pair_max_angle_deg: extra pairs from known poses (``known_poses`` or when
             poses are given; 0 = off).
         min_registered_fraction / min_registered: refuse reconstructions registering fewer frames.
-        num_threads: threads for ``full`` mode's feature matching and mapping. Extraction, and in
-            ``known_poses`` mode also matching and triangulation, run on one thread, so a known-pose cloud is
-            the same bytes run after run (with 2 threads the keypoints' order and the points' last bits changed;
-            the triangulation took the same time on 1 thread: 52 vs 50 s on the real episode; with 2 matching
-            threads on a machine loaded by other work the two-view verification kept other inliers and the
-            cloud another point count: 459 vs 460 points, tests/recon/test_sfm_determinism.py beside 3 busy
-            processes). ``full`` mode stays multi-threaded and is not bit-reproducible.
+        num_threads: cores for feature extraction (blocks of frames, one COLMAP thread each, joined into the
+            bytes of one thread: :mod:`umi_aug.recon.colmap_blocks`; on the real episode 9.7 -> 5.2 s with 2)
+            and for ``full`` mode's matching threads and mapping. ``known_poses`` mode matches and triangulates
+            with one COLMAP thread, so a known-pose cloud is the same bytes run after run and for every
+            ``num_threads`` (COLMAP's own extraction pool stored keypoints in the order its threads finished,
+            and with 2 matching threads on a loaded machine the verification kept other inliers: 459 vs 460
+            points, tests/recon/test_sfm_determinism.py beside 3 busy processes; the triangulation took the same
+            time on 1 thread, and the FAISS matcher keeps two cores busy from one COLMAP thread). ``full``
+            mode's matching and mapping are multi-threaded and not bit-reproducible.
         seed: COLMAP random seed (reproducible RANSAC).
     """
 
@@ -259,21 +262,20 @@ def _extract_and_match(pc, work: Path, names: list[str], intr: FisheyeIntrinsics
     reader.camera_params = ",".join(f"{v:.10g}" for v in colmap_camera_params(intr))
     reader.mask_path = str(work / "masks")
     ext = pc.FeatureExtractionOptions()
-    # one extraction thread: with more, COLMAP stores the keypoints in the order its threads finish, so the
-    # cloud changed run to run (a Ray worker's scene != the one-process one); measured +2-4 s of ~120 s
+    # one COLMAP thread per block (COLMAP's own pool stores keypoints in the order its threads finish, so the cloud
+    # changed run to run); the blocks join into one thread's bytes: recon.colmap_blocks
     ext.num_threads = 1
     ext.max_image_size = cfg.max_image_size
     ext.sift.max_num_features = cfg.max_num_features
     ext.sift.peak_threshold = cfg.peak_threshold
     t = time.perf_counter()
-    pc.extract_features(db, work / "images", image_names=names, camera_mode=pc.CameraMode.SINGLE,
-                        reader_options=reader, extraction_options=ext, device=pc.Device.cpu)
+    extract_in_blocks(pc, db, work / "images", names, reader, ext, cfg.num_threads)
     timings["extract"] = time.perf_counter() - t
     pair_file = work / "pairs.txt"
     pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
     mopt = pc.FeatureMatchingOptions()
-    # known poses: one matching thread too, see SfmConfig.num_threads (which thread verifies which pair changed
-    # the two-view inliers under load)
+    # known poses: one matching thread, see SfmConfig.num_threads (which thread verifies which pair changed the
+    # two-view inliers under load); COLMAP's FAISS matcher still keeps two cores busy
     mopt.num_threads = cfg.num_threads if cfg.mode == "full" else 1
     popt = pc.ImportedPairingOptions()
     popt.match_list_path = str(pair_file)
@@ -309,17 +311,19 @@ def _known_pose_reconstruction(pc, db_path: Path, intr: FisheyeIntrinsics, names
         cams = db.read_all_cameras()
     finally:
         db.close()
-    if len(cams) != 1:
-        raise ReconError(f"{db_path}: expected one shared camera, found {len(cams)}")
-    cam = cams[0]
+    # one camera row per extraction block, all with the same fixed parameters (recon.colmap_blocks)
+    if not cams or any(list(c.params) != list(cams[0].params) or c.model != cams[0].model for c in cams):
+        raise ReconError(f"{db_path}: expected cameras that share one model and parameters, found "
+                         f"{[(str(c.model), list(c.params)) for c in cams]}")
     rec = pc.Reconstruction()
-    rec.add_camera_with_trivial_rig(cam)
+    for cam in cams:
+        rec.add_camera_with_trivial_rig(cam)
     for n, T in zip(names, T_world_cam):
         dbi = db_images.get(n)
         if dbi is None:
             continue
         T_cam_world = np.linalg.inv(T)
-        im = pc.Image(name=n, camera_id=cam.camera_id, image_id=dbi.image_id)
+        im = pc.Image(name=n, camera_id=dbi.camera_id, image_id=dbi.image_id)
         rec.add_image_with_trivial_frame(im, pc.Rigid3d(T_cam_world[:3, :4]))
     return rec
 
