@@ -1,12 +1,13 @@
 """The 3DGS trainer's photometric loss (L1 + D-SSIM, forward and backward) with the target's SSIM window statistics
-recomputed every step (the reference) against kept per view (``ssim_target_stats``, what ``train_splat`` does), in
-one run, per image size (issue #34 item 1: the 3DGS step's parts on the real episode).
+recomputed every step (the reference) against kept per view (``ssim_target_stats``), and the fused numba loss with
+the statistics kept (``photometric_loss_fused``, what ``train_splat`` does), in one run, per image size (issue #34
+item 1: the 3DGS step's parts on the real episode).
 
     python benchmarks/splat_loss.py [--sizes 112 224] [--repeats 50] [--rounds 3] [--threads 2]
 
-Prints ms per loss forward + backward (median over rounds; the two variants alternate within each round), the ratio,
-and the largest difference of the loss and of the prediction's gradient between the two (float32). Run on idle cores;
-the ratio is what carries over between machines.
+Prints ms per loss forward + backward (median over rounds; the variants rotate within each round), the ratios to
+the reference, and the largest difference of the loss and of the prediction's gradient from the reference
+(float32). Run on idle cores; the ratio is what carries over between machines.
 """
 
 from __future__ import annotations
@@ -22,12 +23,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from umi_aug.runtime import configure_threads  # noqa: E402
 
 
-def time_loss(size: int, cached: bool, repeats: int, seed: int) -> tuple[float, float, "object"]:
-    """Seconds per ``photometric_loss`` forward + backward on a ``size``² view (random prediction and target, 90 %
+#: variant → (loss function name in umi_aug.splat.losses, target statistics kept per view)
+VARIANTS = {"reference": ("photometric_loss", False), "kept": ("photometric_loss", True),
+            "fused": ("photometric_loss_fused", True)}
+
+
+def time_loss(size: int, variant: str, repeats: int, seed: int) -> tuple[float, float, "object"]:
+    """Seconds per loss forward + backward of ``variant`` on a ``size``² view (random prediction and target, 90 %
     of the pixels masked in), the last loss value and the prediction's gradient."""
     import torch
 
-    from umi_aug.splat.losses import photometric_loss, ssim_target_stats
+    from umi_aug.splat import losses
+    from umi_aug.splat.losses import ssim_target_stats
+
+    name, cached = VARIANTS[variant]
+    loss_fn = getattr(losses, name)
 
     gen = torch.Generator().manual_seed(seed)
     target = torch.rand(size, size, 3, generator=gen)
@@ -38,7 +48,7 @@ def time_loss(size: int, cached: bool, repeats: int, seed: int) -> tuple[float, 
     t0 = time.perf_counter()
     for _ in range(repeats):
         pred.grad = None
-        loss, _ = photometric_loss(pred, target, mask, 0.2, target_stats=stats)
+        loss, _ = loss_fn(pred, target, mask, 0.2, target_stats=stats)
         loss.backward()
     return (time.perf_counter() - t0) / repeats, float(loss.detach()), pred.grad.clone()
 
@@ -54,24 +64,27 @@ def main() -> int:
     from rich.console import Console
     from rich.table import Table
 
-    t = Table(title=f"photometric_loss forward + backward, ms (median of {args.rounds} rounds, {args.threads} threads)")
-    for c in ("image", "target stats each step", "target stats kept", "x", "max |Δ loss|", "max |Δ grad|"):
+    t = Table(title=f"photometric loss forward + backward, ms (median of {args.rounds} rounds, {args.threads} threads)")
+    for c in ("image", "target stats each step", "target stats kept", "fused (numba)", "x kept", "x fused",
+              "fused: max |Δ loss|", "fused: max |Δ grad|"):
         t.add_column(c, justify="right")
+    names = list(VARIANTS)
     for size in args.sizes:
-        time_loss(size, True, 3, seed=0)  # warm-up
-        time_loss(size, False, 3, seed=0)
-        ref, kept = [], []
+        for v in names:  # warm-up (numba compilation, torch's first calls)
+            time_loss(size, v, 3, seed=0)
+        secs: dict[str, list[float]] = {v: [] for v in names}
         d_loss = d_grad = 0.0
         for r in range(args.rounds):
             out = {}
-            for cached in ((False, True) if r % 2 == 0 else (True, False)):
-                s, lv, g = time_loss(size, cached, args.repeats, seed=r)
-                (kept if cached else ref).append(s)
-                out[cached] = (lv, g)
-            d_loss = max(d_loss, abs(out[True][0] - out[False][0]))
-            d_grad = max(d_grad, float((out[True][1] - out[False][1]).abs().max()))
-        a, b = statistics.median(ref) * 1e3, statistics.median(kept) * 1e3
-        t.add_row(f"{size}²", f"{a:.2f}", f"{b:.2f}", f"{a / b:.2f}", f"{d_loss:.1e}", f"{d_grad:.1e}")
+            for v in names[r % len(names):] + names[:r % len(names)]:
+                s, lv, g = time_loss(size, v, args.repeats, seed=r)
+                secs[v].append(s)
+                out[v] = (lv, g)
+            d_loss = max(d_loss, abs(out["fused"][0] - out["reference"][0]))
+            d_grad = max(d_grad, float((out["fused"][1] - out["reference"][1]).abs().max()))
+        a, b, c = (statistics.median(secs[v]) * 1e3 for v in names)
+        t.add_row(f"{size}²", f"{a:.2f}", f"{b:.2f}", f"{c:.2f}", f"{a / b:.2f}", f"{a / c:.2f}", f"{d_loss:.1e}",
+                  f"{d_grad:.1e}")
     Console().print(t)
     return 0
 

@@ -37,7 +37,7 @@ from umi_aug.errors import SplatError
 from umi_aug.io_utils import atomic_path
 from umi_aug.splat.densify import grow, inject_noise, relocate_dead
 from umi_aug.splat.gaussians import Gaussians
-from umi_aug.splat.losses import masked_psnr, masked_ssim, photometric_loss, ssim_target_stats
+from umi_aug.splat.losses import masked_psnr, masked_ssim, photometric_loss_fused, ssim_target_stats
 from umi_aug.splat.optim import GaussianAdam
 from umi_aug.splat.ply import write_ply
 from umi_aug.splat.train_report import config_dict, write_outputs
@@ -522,8 +522,8 @@ def train_splat(
                        projection="auto" if cfg.fast_projection else "torch",
                        pixels=d.masks[i] if cfg.loss_pixels_only else None)
             t1 = time.perf_counter()
-            loss, _parts = photometric_loss(r.rgb, d.images[i], d.masks[i], cfg.ssim_weight,
-                                            target_stats=d.ssim_stats(i) if cfg.ssim_weight > 0 else None)
+            loss, _parts = photometric_loss_fused(r.rgb, d.images[i], d.masks[i], cfg.ssim_weight,
+                                                  target_stats=d.ssim_stats(i) if cfg.ssim_weight > 0 else None)
             if cfg.opacity_reg > 0:
                 loss = loss + cfg.opacity_reg * torch.sigmoid(params["logit_opacities"]).mean()
             if cfg.scale_reg > 0:
