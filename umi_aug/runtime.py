@@ -23,6 +23,14 @@ from typing import Any, Callable, Iterator
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
+def quiet_numba_threading_warning() -> None:
+    """Keep numba's "TBB threading layer requires TBB version ..." warning off the console: numba tries TBB first
+    and warns when the installed TBB is too old, then uses OpenMP, which is what runs here anyway; a library
+    message a user can do nothing about. Called by :func:`configure_threads` and by the modules that hold parallel
+    kernels (a library user may never call the former)."""
+    warnings.filterwarnings("ignore", message="The TBB threading layer requires TBB version", module=r"numba(\.|$)")
+
+
 def configure_threads(n_threads: int | None = None) -> int:
     """Set thread-pool sizes to the number of usable cores unless the user already chose them.
 
@@ -48,9 +56,7 @@ def configure_threads(n_threads: int | None = None) -> int:
     # stage (numba rasteriser, MuJoCo, JPEG-XL) needs; measured 64 → 42 ms/frame for the 100k-Gaussian render.
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
-    # numba tries its TBB threading layer first and warns when the installed TBB is too old (it then uses OpenMP,
-    # which is what runs here anyway): a library message a user can do nothing about, kept off the console.
-    warnings.filterwarnings("ignore", message="The TBB threading layer requires TBB version", module=r"numba(\.|$)")
+    quiet_numba_threading_warning()
 
     if "torch" in sys.modules:
         torch = sys.modules["torch"]

@@ -20,3 +20,18 @@ def test_defaults_applied_when_unset():
 
 def test_user_values_win():
     assert _run({"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "2"}) == ["1", "1", "2"]
+
+
+def test_a_library_user_never_sees_numbas_old_tbb_notice():
+    """numba warns on its first parallel kernel when an old TBB is loaded (open3d brings one) and then uses OpenMP:
+    a notice nobody can act on. A library user who never calls configure_threads must not see it either."""
+    import pytest
+
+    pytest.importorskip("open3d")
+    code = ("import warnings; warnings.simplefilter('default'); import open3d, torch\n"
+            "from umi_aug.splat.losses import photometric_loss_fused\n"
+            "p = torch.rand(20, 20, 3, requires_grad=True)\n"
+            "loss, _ = photometric_loss_fused(p, torch.rand(20, 20, 3)); loss.backward(); print('done')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and "done" in out.stdout, out.stderr[-2000:]
+    assert "TBB" not in out.stderr, out.stderr[-2000:]

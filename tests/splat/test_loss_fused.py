@@ -53,8 +53,14 @@ def test_fused_loss_equals_the_reference(rng, dtype, w):
         # gradients are O(1 / (3 N)) (N pixels in the mask); near x = y they vanish, so the tolerance has that floor
         n = pred.shape[0] * pred.shape[1] if mask is None else int(mask.sum())
         scale = max(float(g_ref.abs().max()), 1.0 / (3 * n))
-        gtol = 1e-12 * scale if dtype == torch.float64 else 2e-4 * scale
-        torch.testing.assert_close(g_fast, g_ref, rtol=0, atol=gtol, msg=lambda m: f"{name}: {m}")
+        if dtype == torch.float64:
+            torch.testing.assert_close(g_fast, g_ref, rtol=0, atol=1e-12 * scale, msg=lambda m: f"{name}: {m}")
+        else:  # float32: no further from the float64 gradient than the torch float32 reference is (rounding only)
+            s64 = None if stats is None else ssim_target_stats(target.double())
+            (_, _, g64), _ = _both(pred.double(), target.double(), mask, w, s64)
+            err_fast = float((g_fast.double() - g64).abs().max())
+            err_ref = float((g_ref.double() - g64).abs().max())
+            assert err_fast <= 2.0 * err_ref + 1e-5 * scale, (name, err_fast, err_ref, scale)
         if mask is not None:
             assert torch.all(g_fast[~mask] == 0), name
 

@@ -39,6 +39,7 @@ from numba import njit, prange, types
 from numba.extending import overload
 
 from umi_aug.camera.kb import MIN_POINT_NORM, SMALL_T, THETA_MAX_SLACK
+from umi_aug.runtime import quiet_numba_threading_warning
 from umi_aug.splat._constants import (
     ALPHA_THRESHOLD,
     BBOX_MARGIN_PX,
@@ -54,6 +55,8 @@ from umi_aug.splat._constants import (
     TILE_SIZE,
     TRANSMITTANCE_THRESHOLD,
 )
+
+quiet_numba_threading_warning()
 
 #: Number of columns of the packed per-Gaussian array.
 PACKED_COLS = 16

@@ -27,6 +27,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from umi_aug.runtime import quiet_numba_threading_warning
+
+quiet_numba_threading_warning()
+
 
 @njit(cache=True, parallel=True)
 def blur_maps_kernel(maps, g, tmp, out):  # pragma: no cover - compiled
