@@ -623,9 +623,12 @@ def _raster_fwd_tile(
 @njit(parallel=True, cache=True)
 def raster_fwd_kernel(
     packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
-    out_rgb, out_depth, out_T, out_last, out_evals,
+    out_rgb, out_depth, out_T, out_last, out_evals, n_workers,
 ):  # pragma: no cover - compiled
-    """Front-to-back compositing per 16x16 tile (parallel over tiles).
+    """Front-to-back compositing per 16x16 tile, parallel over tiles: worker ``k`` of ``n_workers`` (numba's thread
+    count, passed in: a cached kernel cannot ask for it) takes tiles ``k, k + n_workers, k + 2 n_workers, ...``. On 2
+    idle cores this is ~1.3x faster than numba handing out one tile at a time (:func:`_raster_fwd_kernel_per_tile`,
+    the same bytes; ``benchmarks/raster_workers.py``).
 
     Each tile first copies its rows of ``packed`` (``sorted_row[tile_start[t]:tile_start[t+1]]``, depth order)
     into a contiguous local buffer (:func:`_gather_tile`, means from ``uv64`` in tile-local pixels) and then reads
@@ -637,6 +640,21 @@ def raster_fwd_kernel(
     int32 position (in ``sorted_row``) of the last composited Gaussian (-1: none), ``out_evals [n_tiles]``
     (Gaussian, pixel) pairs visited.
     """
+    n_tiles = tile_start.shape[0] - 1
+    for k in prange(n_workers):
+        for t in range(k, n_tiles, n_workers):
+            _raster_fwd_tile(t, packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
+                             out_rgb, out_depth, out_T, out_last, out_evals)
+
+
+@njit(parallel=True, cache=True)
+def _raster_fwd_kernel_per_tile(
+    packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
+    out_rgb, out_depth, out_T, out_last, out_evals,
+):  # pragma: no cover - compiled
+    """:func:`raster_fwd_kernel` as it was scheduled before: a ``prange`` over the tiles, which numba hands out one
+    chunk at a time (``numba.parallel_chunksize``). The same outputs; the reference of the tests and
+    ``benchmarks/raster_workers.py``."""
     for t in prange(tile_start.shape[0] - 1):
         _raster_fwd_tile(t, packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
                          out_rgb, out_depth, out_T, out_last, out_evals)
@@ -645,161 +663,187 @@ def raster_fwd_kernel(
 @njit(parallel=True, cache=True, fastmath={"contract"})
 def raster_fwd_fused_kernel(
     packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
-    out_rgb, out_depth, out_T, out_last, out_evals,
+    out_rgb, out_depth, out_T, out_last, out_evals, n_workers,
 ):  # pragma: no cover - compiled
     """:func:`raster_fwd_kernel` with fused multiply-adds (LLVM ``contract``, nothing else of fastmath): for
     inference only, where no backward re-evaluates the pairs. Outputs differ from :func:`raster_fwd_kernel`'s by
     rounding (~4e-7 in float32 colour); ~x1.17 faster on the 2-core machine (benchmarks/raster_occupancy.py)."""
-    for t in prange(tile_start.shape[0] - 1):
-        _raster_fwd_tile(t, packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
-                         out_rgb, out_depth, out_T, out_last, out_evals)
+    n_tiles = tile_start.shape[0] - 1
+    for k in prange(n_workers):
+        for t in range(k, n_tiles, n_workers):
+            _raster_fwd_tile(t, packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
+                             out_rgb, out_depth, out_T, out_last, out_evals)
+
+
+@njit(cache=True, inline="always")
+def _raster_bwd_tile(
+    t, packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
+    final_T, last_idx, g_rgb, g_depth, g_T, out_grad,
+):  # pragma: no cover - compiled
+    """Tile ``t`` of :func:`raster_bwd_kernel` (inlined into it)."""
+    max_alpha, a_thr, one, half, zero = cst[0], cst[1], cst[3], cst[4], cst[5]
+    s_begin = tile_start[t]
+    s_end = tile_start[t + 1]
+    if s_end == s_begin:
+        return
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    x0 = tx * _TS
+    y0 = ty * _TS
+    x1 = min(x0 + _TS, width) - 1
+    y1 = min(y0 + _TS, height) - 1
+    tw = x1 - x0 + 1
+    th = y1 - y0 + 1
+    n = _TS * _TS
+    Tc = np.ones(n, dtype=packed.dtype)
+    Tf = np.ones(n, dtype=packed.dtype)
+    lastp = np.full(n, -1, dtype=np.int64)
+    gc = np.zeros((n, 3), dtype=packed.dtype)
+    gd = np.zeros(n, dtype=packed.dtype)
+    gT = np.zeros(n, dtype=packed.dtype)
+    Rc = np.zeros((n, 3), dtype=packed.dtype)
+    Rd = np.zeros(n, dtype=packed.dtype)
+    la = np.zeros(n, dtype=packed.dtype)
+    lc = np.zeros((n, 3), dtype=packed.dtype)
+    ld = np.zeros(n, dtype=packed.dtype)
+    max_last = -1
+    for y in range(y0, y1 + 1):
+        for x in range(x0, x1 + 1):
+            p = (y - y0) * _TS + (x - x0)
+            Tf[p] = final_T[y, x]
+            Tc[p] = final_T[y, x]
+            lastp[p] = last_idx[y, x]
+            max_last = max(max_last, last_idx[y, x])
+            gc[p, 0] = g_rgb[y, x, 0]
+            gc[p, 1] = g_rgb[y, x, 1]
+            gc[p, 2] = g_rgb[y, x, 2]
+            gd[p] = g_depth[y, x]
+            gT[p] = g_T[y, x]
+    for s in range(s_begin, s_end):
+        for col in range(out_grad.shape[1]):
+            out_grad[s, col] = 0.0
+    tp = _gather_tile(packed, uv64, sorted_row, s_begin, max_last + 1, x0, y0)
+    for s in range(max_last, s_begin - 1, -1):
+        j = s - s_begin
+        if tp[j, 10] < zero:
+            continue
+        mx, my = tp[j, 0], tp[j, 1]
+        a, b, c = tp[j, 2], tp[j, 3], tp[j, 4]
+        op = tp[j, 5]
+        cr, cg, cb = tp[j, 6], tp[j, 7], tp[j, 8]
+        dep = tp[j, 9]
+        gam, bet = tp[j, 12], tp[j, 13]
+        mx64, my64 = np.float64(mx), np.float64(my)
+        lim64, gam64, bet64 = np.float64(tp[j, 10]), np.float64(gam), np.float64(bet)
+        inva64 = np.float64(tp[j, 14])
+        a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
+        ya, yb = _pixel_range(my64, np.float64(tp[j, 11]), 0, th - 1)
+        gmx = 0.0
+        gmy = 0.0
+        ga = 0.0
+        gb = 0.0
+        gcc = 0.0
+        gop = 0.0
+        gr = 0.0
+        gg = 0.0
+        gbl = 0.0
+        gdep = 0.0
+        for y in range(ya, yb + 1):
+            xa, xb = _row_span(mx64, my64, lim64, gam64, bet64, inva64, np.float64(y), 0, tw - 1)
+            if xa > xb:
+                continue
+            dy = ys[y] - my
+            gdy = gam * dy * dy
+            bdy = bet * dy
+            base = y * _TS
+            for x in range(xa, xb + 1):
+                p = base + x
+                if s > lastp[p]:
+                    continue
+                dx = xs[x] - mx
+                e = dx + bdy
+                power = -half * (a * e * e + gdy)
+                G = fexp(power)
+                oG = op * G
+                alpha = min(max_alpha, oG)
+                if not ((alpha >= a_thr) and (power <= zero)):
+                    continue
+                Ti = Tc[p] / (one - alpha)
+                w = alpha * Ti
+                g0, g1, g2, gdp = gc[p, 0], gc[p, 1], gc[p, 2], gd[p]
+                gr += np.float64(w * g0)
+                gg += np.float64(w * g1)
+                gbl += np.float64(w * g2)
+                gdep += np.float64(w * gdp)
+                lap = la[p]
+                r0 = lap * lc[p, 0] + (one - lap) * Rc[p, 0]
+                r1 = lap * lc[p, 1] + (one - lap) * Rc[p, 1]
+                r2 = lap * lc[p, 2] + (one - lap) * Rc[p, 2]
+                rd = lap * ld[p] + (one - lap) * Rd[p]
+                Rc[p, 0] = r0
+                Rc[p, 1] = r1
+                Rc[p, 2] = r2
+                Rd[p] = rd
+                dL_dalpha = Ti * (g0 * (cr - r0) + g1 * (cg - r1) + g2 * (cb - r2) + gdp * (dep - rd))
+                dL_dalpha -= gT[p] * Tf[p] / (one - alpha)
+                la[p] = alpha
+                lc[p, 0] = cr
+                lc[p, 1] = cg
+                lc[p, 2] = cb
+                ld[p] = dep
+                Tc[p] = Ti
+                if oG <= max_alpha:
+                    gop += np.float64(G * dL_dalpha)
+                    dLdp = np.float64(alpha * dL_dalpha)
+                    dx64 = np.float64(dx)
+                    dy64 = np.float64(dy)
+                    ga += -0.5 * dLdp * dx64 * dx64
+                    gb += -dLdp * dx64 * dy64
+                    gcc += -0.5 * dLdp * dy64 * dy64
+                    gmx += dLdp * (a64 * dx64 + b64 * dy64)
+                    gmy += dLdp * (b64 * dx64 + c64 * dy64)
+        out_grad[s, 0] = gmx
+        out_grad[s, 1] = gmy
+        out_grad[s, 2] = ga
+        out_grad[s, 3] = gb
+        out_grad[s, 4] = gcc
+        out_grad[s, 5] = gop
+        out_grad[s, 6] = gr
+        out_grad[s, 7] = gg
+        out_grad[s, 8] = gbl
+        out_grad[s, 9] = gdep
 
 
 @njit(parallel=True, cache=True)
 def raster_bwd_kernel(
     packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
-    final_T, last_idx, g_rgb, g_depth, g_T, out_grad,
+    final_T, last_idx, g_rgb, g_depth, g_T, out_grad, n_workers,
 ):  # pragma: no cover - compiled
     """Backward of :func:`raster_fwd_kernel` (INRIA style: back to front from each pixel's last contributor,
-    transmittance recovered from the stored final T; the same instructions decide which pairs count).
+    transmittance recovered from the stored final T; the same instructions decide which pairs count), its tiles
+    shared among the workers as in the forward.
 
     ``g_rgb [H, W, 3]``, ``g_depth [H, W]``, ``g_T [H, W]``: gradients of the loss w.r.t. the three forward
     outputs. Writes ``out_grad [M, 10]`` per intersection position ``s`` (race-free: each position belongs to
     one tile): d/d(u, v, conic a, b, c, opacity, r, g, b, ray_depth).
     """
-    max_alpha, a_thr, one, half, zero = cst[0], cst[1], cst[3], cst[4], cst[5]
     n_tiles = tile_start.shape[0] - 1
-    for t in prange(n_tiles):
-        s_begin = tile_start[t]
-        s_end = tile_start[t + 1]
-        if s_end == s_begin:
-            continue
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        x0 = tx * _TS
-        y0 = ty * _TS
-        x1 = min(x0 + _TS, width) - 1
-        y1 = min(y0 + _TS, height) - 1
-        tw = x1 - x0 + 1
-        th = y1 - y0 + 1
-        n = _TS * _TS
-        Tc = np.ones(n, dtype=packed.dtype)
-        Tf = np.ones(n, dtype=packed.dtype)
-        lastp = np.full(n, -1, dtype=np.int64)
-        gc = np.zeros((n, 3), dtype=packed.dtype)
-        gd = np.zeros(n, dtype=packed.dtype)
-        gT = np.zeros(n, dtype=packed.dtype)
-        Rc = np.zeros((n, 3), dtype=packed.dtype)
-        Rd = np.zeros(n, dtype=packed.dtype)
-        la = np.zeros(n, dtype=packed.dtype)
-        lc = np.zeros((n, 3), dtype=packed.dtype)
-        ld = np.zeros(n, dtype=packed.dtype)
-        max_last = -1
-        for y in range(y0, y1 + 1):
-            for x in range(x0, x1 + 1):
-                p = (y - y0) * _TS + (x - x0)
-                Tf[p] = final_T[y, x]
-                Tc[p] = final_T[y, x]
-                lastp[p] = last_idx[y, x]
-                max_last = max(max_last, last_idx[y, x])
-                gc[p, 0] = g_rgb[y, x, 0]
-                gc[p, 1] = g_rgb[y, x, 1]
-                gc[p, 2] = g_rgb[y, x, 2]
-                gd[p] = g_depth[y, x]
-                gT[p] = g_T[y, x]
-        for s in range(s_begin, s_end):
-            for col in range(out_grad.shape[1]):
-                out_grad[s, col] = 0.0
-        tp = _gather_tile(packed, uv64, sorted_row, s_begin, max_last + 1, x0, y0)
-        for s in range(max_last, s_begin - 1, -1):
-            j = s - s_begin
-            if tp[j, 10] < zero:
-                continue
-            mx, my = tp[j, 0], tp[j, 1]
-            a, b, c = tp[j, 2], tp[j, 3], tp[j, 4]
-            op = tp[j, 5]
-            cr, cg, cb = tp[j, 6], tp[j, 7], tp[j, 8]
-            dep = tp[j, 9]
-            gam, bet = tp[j, 12], tp[j, 13]
-            mx64, my64 = np.float64(mx), np.float64(my)
-            lim64, gam64, bet64 = np.float64(tp[j, 10]), np.float64(gam), np.float64(bet)
-            inva64 = np.float64(tp[j, 14])
-            a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
-            ya, yb = _pixel_range(my64, np.float64(tp[j, 11]), 0, th - 1)
-            gmx = 0.0
-            gmy = 0.0
-            ga = 0.0
-            gb = 0.0
-            gcc = 0.0
-            gop = 0.0
-            gr = 0.0
-            gg = 0.0
-            gbl = 0.0
-            gdep = 0.0
-            for y in range(ya, yb + 1):
-                xa, xb = _row_span(mx64, my64, lim64, gam64, bet64, inva64, np.float64(y), 0, tw - 1)
-                if xa > xb:
-                    continue
-                dy = ys[y] - my
-                gdy = gam * dy * dy
-                bdy = bet * dy
-                base = y * _TS
-                for x in range(xa, xb + 1):
-                    p = base + x
-                    if s > lastp[p]:
-                        continue
-                    dx = xs[x] - mx
-                    e = dx + bdy
-                    power = -half * (a * e * e + gdy)
-                    G = fexp(power)
-                    oG = op * G
-                    alpha = min(max_alpha, oG)
-                    if not ((alpha >= a_thr) and (power <= zero)):
-                        continue
-                    Ti = Tc[p] / (one - alpha)
-                    w = alpha * Ti
-                    g0, g1, g2, gdp = gc[p, 0], gc[p, 1], gc[p, 2], gd[p]
-                    gr += np.float64(w * g0)
-                    gg += np.float64(w * g1)
-                    gbl += np.float64(w * g2)
-                    gdep += np.float64(w * gdp)
-                    lap = la[p]
-                    r0 = lap * lc[p, 0] + (one - lap) * Rc[p, 0]
-                    r1 = lap * lc[p, 1] + (one - lap) * Rc[p, 1]
-                    r2 = lap * lc[p, 2] + (one - lap) * Rc[p, 2]
-                    rd = lap * ld[p] + (one - lap) * Rd[p]
-                    Rc[p, 0] = r0
-                    Rc[p, 1] = r1
-                    Rc[p, 2] = r2
-                    Rd[p] = rd
-                    dL_dalpha = Ti * (g0 * (cr - r0) + g1 * (cg - r1) + g2 * (cb - r2) + gdp * (dep - rd))
-                    dL_dalpha -= gT[p] * Tf[p] / (one - alpha)
-                    la[p] = alpha
-                    lc[p, 0] = cr
-                    lc[p, 1] = cg
-                    lc[p, 2] = cb
-                    ld[p] = dep
-                    Tc[p] = Ti
-                    if oG <= max_alpha:
-                        gop += np.float64(G * dL_dalpha)
-                        dLdp = np.float64(alpha * dL_dalpha)
-                        dx64 = np.float64(dx)
-                        dy64 = np.float64(dy)
-                        ga += -0.5 * dLdp * dx64 * dx64
-                        gb += -dLdp * dx64 * dy64
-                        gcc += -0.5 * dLdp * dy64 * dy64
-                        gmx += dLdp * (a64 * dx64 + b64 * dy64)
-                        gmy += dLdp * (b64 * dx64 + c64 * dy64)
-            out_grad[s, 0] = gmx
-            out_grad[s, 1] = gmy
-            out_grad[s, 2] = ga
-            out_grad[s, 3] = gb
-            out_grad[s, 4] = gcc
-            out_grad[s, 5] = gop
-            out_grad[s, 6] = gr
-            out_grad[s, 7] = gg
-            out_grad[s, 8] = gbl
-            out_grad[s, 9] = gdep
+    for k in prange(n_workers):
+        for t in range(k, n_tiles, n_workers):
+            _raster_bwd_tile(t, packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
+                             final_T, last_idx, g_rgb, g_depth, g_T, out_grad)
+
+
+@njit(parallel=True, cache=True)
+def _raster_bwd_kernel_per_tile(
+    packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
+    final_T, last_idx, g_rgb, g_depth, g_T, out_grad,
+):  # pragma: no cover - compiled
+    """:func:`raster_bwd_kernel` scheduled one tile per ``prange`` iteration (as before): the reference of the tests
+    and ``benchmarks/raster_workers.py``."""
+    for t in prange(tile_start.shape[0] - 1):
+        _raster_bwd_tile(t, packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
+                         final_T, last_idx, g_rgb, g_depth, g_T, out_grad)
 
 
 @njit(parallel=True, cache=True)

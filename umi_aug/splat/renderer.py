@@ -38,7 +38,8 @@ __all__ = [
 
 Tensor = torch.Tensor
 
-#: Iterations handed to one worker at a time by the parallel loops over tiles (dynamic balancing).
+#: Iterations handed to one thread at a time by the rasteriser's parallel loops (over its workers, each of which
+#: takes an interleaved share of the tiles: ``_kernels.raster_fwd_kernel``).
 PARALLEL_CHUNK = 1
 #: Below this much work (Gaussians, intersections, pixels) a kernel runs on one thread: waking the thread pool
 #: costs more than it saves, and on busy shared cores it can stall for milliseconds.
@@ -246,7 +247,7 @@ def rasterize_packed(packed: np.ndarray, binning: Binning, uv64: np.ndarray, fus
         (K.raster_fwd_fused_kernel if fused and dt == np.float32 else K.raster_fwd_kernel)(
             packed, uv64, binning.tile_start, binning.sorted_row, W, H, binning.tiles_x, xs, ys,
             K.raster_constants(dt, min_transmittance), active_pixels(pixels, H, W), out["rgb"], out["depth"], out["T"],
-            out["last"], out["evals"],
+            out["last"], out["evals"], numba.get_num_threads(),
         )
     return out
 
@@ -265,7 +266,7 @@ def rasterize_packed_backward(
             packed, uv64, binning.tile_start, binning.sorted_row, binning.width, binning.height, binning.tiles_x,
             xs, ys, K.raster_constants(dt), final_T, last,
             np.ascontiguousarray(g_rgb, dtype=dt), np.ascontiguousarray(g_depth, dtype=dt),
-            np.ascontiguousarray(g_T, dtype=dt), isect_grad,
+            np.ascontiguousarray(g_T, dtype=dt), isect_grad, numba.get_num_threads(),
         )
     out = np.zeros((packed.shape[0], K.GRAD_COLS), dtype=np.float64)
     with _parallel(binning.n_isects, 256):
