@@ -22,6 +22,7 @@ import math
 import torch
 
 from umi_aug.geometry.se3_torch import quat_wxyz_to_matrix
+from umi_aug.splat import _optim_kernels as OK
 from umi_aug.splat.optim import GaussianAdam
 
 __all__ = ["MAX_RELOCATION_RATIO", "relocation_opacity_scale", "relocate_dead", "grow", "inject_noise"]
@@ -121,7 +122,25 @@ def grow(params: dict[str, Tensor], opt: GaussianAdam, gen: torch.Generator, max
 
 def inject_noise(params: dict[str, Tensor], scale: float, gen: torch.Generator) -> None:
     """SGLD position noise (in place): ``means += Sigma eps * scale * gate(opacity)``, ``Sigma`` the world
-    covariance (m^2), ``scale`` = ``noise_lr * lr_means``."""
+    covariance (m^2), ``scale`` = ``noise_lr * lr_means``. One numba pass over the Gaussians
+    (:func:`umi_aug.splat._optim_kernels.position_noise_kernel`) with ``eps`` drawn from ``gen`` as
+    :func:`_inject_noise_torch` (the reference) draws it."""
+    names = ("means", "logit_opacities", "quats_wxyz", "log_scales")
+    ts = [params[k] for k in names]
+    dt = ts[0].dtype
+    if not all(t.device.type == "cpu" and t.dtype == dt and t.is_contiguous() for t in ts) or dt not in (
+            torch.float32, torch.float64):
+        _inject_noise_torch(params, scale, gen)
+        return
+    with torch.no_grad():
+        eps = torch.randn(ts[0].shape, generator=gen, dtype=dt)
+        means, logit_op, quats, log_scales = (t.detach().numpy() for t in ts)
+        OK.position_noise_kernel(means, logit_op, quats, log_scales, eps.numpy(), float(scale), NOISE_GATE_K,
+                                 NOISE_GATE_X0)
+
+
+def _inject_noise_torch(params: dict[str, Tensor], scale: float, gen: torch.Generator) -> None:
+    """:func:`inject_noise` with torch operations (the reference of ``tests/splat/test_optim_kernels.py``)."""
     with torch.no_grad():
         means = params["means"]
         op = torch.sigmoid(params["logit_opacities"])

@@ -5,7 +5,8 @@ rows copied or reset) clumsy; this small optimiser keeps ``exp_avg`` / ``exp_avg
 :mod:`umi_aug.splat.densify` can reset rows (:meth:`GaussianAdam.reset_rows`) and append rows
 (:meth:`GaussianAdam.append_rows`) and the state round-trips through a checkpoint (:meth:`state_dict`).
 Update rule: PyTorch's Adam (``betas = (0.9, 0.999)``, ``eps = 1e-15`` as in 3DGS, bias-corrected, one shared
-step count).
+step count). :meth:`GaussianAdam.step` runs it as one numba pass per parameter (:mod:`umi_aug.splat._optim_kernels`);
+:meth:`GaussianAdam._step_torch` is the torch reference it is tested against.
 """
 
 from __future__ import annotations
@@ -15,10 +16,19 @@ from typing import Mapping
 import torch
 
 from umi_aug.errors import SplatError
+from umi_aug.splat import _optim_kernels as OK
 
 __all__ = ["GaussianAdam"]
 
 Tensor = torch.Tensor
+
+
+def _kernel_can_update(p: Tensor, g: Tensor, m: Tensor, v: Tensor) -> bool:
+    """Whether the numba kernel can update ``p`` in place: CPU float32/float64, one dtype, contiguous (the gradient
+    may be strided: it is copied), at least one row."""
+    return (p.device.type == "cpu" and p.dtype in (torch.float32, torch.float64) and p.shape[0] > 0
+            and all(t.device.type == "cpu" and t.dtype == p.dtype and t.shape == p.shape for t in (g, m, v))
+            and p.is_contiguous() and m.is_contiguous() and v.is_contiguous())
 
 
 class GaussianAdam:
@@ -55,15 +65,47 @@ class GaussianAdam:
             if g is None:
                 continue
             m, v = self.exp_avg[name], self.exp_avg_sq[name]
+            if not _kernel_can_update(p, g, m, v):
+                self._update_torch(name, p, lrs, active, bc1, bc2)
+                continue
+            n = p.shape[0]
             k = None if active is None else active.get(name)
+            cols = p[:1].numel()  # numbers per Gaussian
             if k is not None and p.ndim >= 2 and k < p.shape[1]:
                 if k <= 0:
                     continue
-                p, g, m, v = p[:, :k], g[:, :k], m[:, :k], v[:, :k]  # views: updated in place
-            m.mul_(b1).add_(g, alpha=1.0 - b1)
-            v.mul_(b2).addcmul_(g, g, value=1.0 - b2)
-            denom = (v / bc2).sqrt_().add_(self.eps)
-            p.addcdiv_(m, denom, value=-float(lrs[name]) / bc1)
+                cols = cols // p.shape[1] * k  # the leading k entries along dim 1 are the leading columns
+            OK.adam_rows_kernel(p.detach().view(n, -1).numpy(), g.detach().contiguous().view(n, -1).numpy(),
+                                m.view(n, -1).numpy(), v.view(n, -1).numpy(), cols, float(lrs[name]) / bc1, b1, b2,
+                                bc2, self.eps)
+
+    @torch.no_grad()
+    def _step_torch(self, lrs: Mapping[str, float], active: Mapping[str, int] | None = None) -> None:
+        """:meth:`step` with torch operations (the reference of ``tests/splat/test_optim_kernels.py``)."""
+        self.step_count += 1
+        b1, b2 = self.betas
+        bc1 = 1.0 - b1**self.step_count
+        bc2 = 1.0 - b2**self.step_count
+        for name, p in self.params.items():
+            if p.grad is not None:
+                self._update_torch(name, p, lrs, active, bc1, bc2)
+
+    @torch.no_grad()
+    def _update_torch(self, name: str, p: Tensor, lrs: Mapping[str, float], active: Mapping[str, int] | None,
+                      bc1: float, bc2: float) -> None:
+        """Adam on parameter ``name`` with torch operations (bias corrections ``bc1``, ``bc2`` of this step)."""
+        b1, b2 = self.betas
+        g = p.grad
+        m, v = self.exp_avg[name], self.exp_avg_sq[name]
+        k = None if active is None else active.get(name)
+        if k is not None and p.ndim >= 2 and k < p.shape[1]:
+            if k <= 0:
+                return
+            p, g, m, v = p[:, :k], g[:, :k], m[:, :k], v[:, :k]  # views: updated in place
+        m.mul_(b1).add_(g, alpha=1.0 - b1)
+        v.mul_(b2).addcmul_(g, g, value=1.0 - b2)
+        denom = (v / bc2).sqrt_().add_(self.eps)
+        p.addcdiv_(m, denom, value=-float(lrs[name]) / bc1)
 
     def zero_grad(self) -> None:
         for p in self.params.values():
