@@ -52,6 +52,7 @@ from umi_aug.augment.stages import contact_stage, gripper_mask_stage, init_only_
 from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
 from umi_aug.data import ReplayBuffer, make_umi_episode
 from umi_aug.data.fingerprint import content_fingerprint
+from umi_aug.data.rows import read_rows
 from umi_aug.data.validate import (FROZEN_ANGLE_RAD, FROZEN_MIN_STEPS, FROZEN_STEP_M, first_frozen_step,
                                    gripper_width_problem)
 from umi_aug.errors import AugmentError, UmiAugError
@@ -422,8 +423,7 @@ def _read_frames(dataset: Path, episode: int, idx: np.ndarray) -> np.ndarray:
     with ReplayBuffer.open(dataset) as buf:
         sl = buf.get_episode_slice(int(episode))
         arr = buf["camera0_rgb"]
-        rows = np.asarray(idx, np.int64) + sl.start
-        return np.stack([arr[int(r)] for r in rows]) if len(rows) else np.zeros((0,) + arr.shape[1:], np.uint8)
+        return read_rows(arr, np.asarray(idx, np.int64) + sl.start)  # their chunks decoded on the cores
 
 
 @dataclass

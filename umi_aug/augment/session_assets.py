@@ -157,15 +157,12 @@ class SessionAssets:
 
     def original_frames(self, demo_index: int, frames: np.ndarray | slice) -> np.ndarray:
         """Original policy frames ``[K, S, S, 3]`` uint8 of demo ``demo_index``."""
+        from umi_aug.data.rows import read_rows  # lazy, start-up: zarr
+
         sl = self.original.get_episode_slice(int(demo_index))
-        arr = self.original["camera0_rgb"]
-        if isinstance(frames, slice):
-            return arr[sl][frames]
-        idx = np.asarray(frames, dtype=np.int64) + sl.start
-        if len(idx) == 0:
-            return np.zeros((0,) + arr.shape[1:], np.uint8)
-        lo, hi = int(idx.min()), int(idx.max()) + 1
-        return arr[lo:hi][idx - lo]
+        rows = np.arange(sl.start, sl.stop)[frames] if isinstance(frames, slice) else (
+            np.asarray(frames, dtype=np.int64) + sl.start)
+        return read_rows(self.original["camera0_rgb"], rows)  # only these frames, decoded on the cores
 
     def original_lowdim(self, demo_index: int) -> dict[str, np.ndarray]:
         """Every non-image key of demo ``demo_index``'s original episode, as stored (key → ``[H, ...]`` rows)."""
