@@ -245,9 +245,14 @@ def _np(t: Tensor) -> np.ndarray:
 
 class ProjectGaussians(torch.autograd.Function):
     """:func:`project_gaussians` as numba kernels: ``forward(means, log_scales, quats_wxyz, logit_opacities, sh0,
-    sh_rest, setup)`` returns ``(out [V, 13], ids [V])`` with the columns of
-    :mod:`umi_aug.splat._project_kernels` in the scene's dtype (computed in float64); the backward recomputes the
-    visible Gaussians and writes the gradients of all six parameters (zero for culled rows)."""
+    sh_rest, setup)`` returns ``(means2d [V, 2], conics [V, 3], opacities [V], colors [V, 3], depths [V],
+    cov2d [V, 3], ids [V])`` — the column groups of :mod:`umi_aug.splat._project_kernels` as separate tensors in the
+    scene's dtype (computed in float64), so that autograd hands their gradients straight to :meth:`backward`
+    (slices of one output tensor cost a zero-filled full-size gradient each). The backward recomputes the visible
+    Gaussians and writes the gradients of all six parameters (zero for culled rows)."""
+
+    #: Output column ranges (start, stop) of the six differentiable outputs in ``PK.PROJ_COLS``.
+    COLUMNS = ((0, 2), (2, 5), (5, 6), (6, 9), (9, 10), (10, 13))
 
     @staticmethod
     def forward(ctx, means, log_scales, quats, logit_op, sh0, sh_rest, setup: _Setup):
@@ -264,19 +269,25 @@ class ProjectGaussians(torch.autograd.Function):
         ctx.setup, ctx.ids = setup, ids
         ids_t = torch.from_numpy(ids)
         ctx.mark_non_differentiable(ids_t)
-        return torch.from_numpy(out[ids]).to(means.dtype), ids_t
+        vis = torch.from_numpy(out[ids]).to(means.dtype)
+        parts = [vis[:, a:b].clone() if b - a > 1 else vis[:, a].clone() for a, b in ProjectGaussians.COLUMNS]
+        return (*parts, ids_t)
 
     @staticmethod
-    def backward(ctx, g_out, _g_ids):
+    def backward(ctx, *grads_out):
         t0 = time.perf_counter()
         su = ctx.setup
         tensors = ctx.saved_tensors
         arrs = [_np(t) for t in tensors]
         grads = [np.zeros(a.shape, dtype=a.dtype) for a in arrs]
-        if g_out is not None and ctx.ids.size:
+        given = [(g, cols) for g, cols in zip(grads_out[:-1], ProjectGaussians.COLUMNS) if g is not None]
+        if given and ctx.ids.size:
+            g_out = np.zeros((ctx.ids.size, PK.PROJ_COLS), dtype=np.float64)
+            for g, (a, b) in given:
+                g_out[:, a:b] = g.detach().cpu().numpy().reshape(ctx.ids.size, b - a)
             PK.project_bwd_kernel(
                 ctx.ids, *arrs, su.sh_degree, su.R_cw, su.t_cw, su.campos, su.cam, su.dilation, su.compensate,
-                _np(g_out.to(torch.float64)), *grads,
+                g_out, *grads,
             )
         if su.timings is not None:
             su.timings["project_backward"] = su.timings.get("project_backward", 0.0) + time.perf_counter() - t0
@@ -292,7 +303,7 @@ def _project_fast(g: Gaussians, T_world_cam, intr: FisheyeIntrinsics, deg: int, 
     setup = _Setup(np.ascontiguousarray(R_cw), np.ascontiguousarray(t_cw), np.ascontiguousarray(campos), cam,
                    int(deg), float(near), float(far), float(dilation), bool(compensate),
                    kb_torch._theta_slack(g.dtype), intr.width, intr.height, timings)
-    out, ids = ProjectGaussians.apply(g.means, g.log_scales, g.quats_wxyz, g.logit_opacities, g.sh0, g.sh_rest,
-                                      setup)
-    return Projected(ids=ids, means2d=out[:, 0:2], conics=out[:, 2:5], opacities=out[:, 5], colors=out[:, 6:9],
-                     depths=out[:, 9], cov2d=out[:, 10:13])
+    means2d, conics, opacities, colors, depths, cov2d, ids = ProjectGaussians.apply(
+        g.means, g.log_scales, g.quats_wxyz, g.logit_opacities, g.sh0, g.sh_rest, setup)
+    return Projected(ids=ids, means2d=means2d, conics=conics, opacities=opacities, colors=colors, depths=depths,
+                     cov2d=cov2d)
