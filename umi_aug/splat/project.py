@@ -269,8 +269,10 @@ class ProjectGaussians(torch.autograd.Function):
         ctx.setup, ctx.ids = setup, ids
         ids_t = torch.from_numpy(ids)
         ctx.mark_non_differentiable(ids_t)
-        vis = torch.from_numpy(out[ids]).to(means.dtype)
-        parts = [vis[:, a:b].clone() if b - a > 1 else vis[:, a].clone() for a, b in ProjectGaussians.COLUMNS]
+        vis = out[ids]
+        np_dt = np.float64 if means.dtype == torch.float64 else np.float32
+        parts = [torch.from_numpy(vis[:, a:b].astype(np_dt) if b - a > 1 else vis[:, a].astype(np_dt))
+                 for a, b in ProjectGaussians.COLUMNS]  # each its own contiguous array, converted in one pass
         return (*parts, ids_t)
 
     @staticmethod
