@@ -25,8 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _scratch import real_episode_missing  # noqa: E402
-from real_scene_cost import REAL, configs  # noqa: E402
+from real_scene_cost import REAL, real_episode_assets  # noqa: E402
 from umi_aug.runtime import configure_threads  # noqa: E402
 
 
@@ -50,19 +49,15 @@ def main() -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from umi_aug.augment.dataset_source import prepare_dataset
     from umi_aug.splat import _kernels as K
     from umi_aug.splat._constants import DEFAULT_FILTER
     from umi_aug.splat.renderer import PARALLEL_CHUNK, _pixel_coords, bin_gaussians, project_numba
     from umi_aug.splat.train_session import loss_mask
 
-    ds = Path(args.dataset)
-    error = real_episode_missing(ds)
+    assets, error = real_episode_assets(Path(args.dataset), Path(args.work))
     if error:
         print(error, file=sys.stderr)
         return 2
-    cfg, inp = configs({})
-    assets = prepare_dataset(ds, Path(args.work), cfg, inp, progress=False).for_demo(0)
     d = assets.demos[0]
     idx = np.linspace(0, int(d.contact_index), args.frames).round().astype(int)
     g = assets.gaussians
@@ -88,6 +83,14 @@ def main() -> int:
         return (np.empty((H, W, 3), dt), np.empty((H, W), dt), np.empty((H, W), dt), np.empty((H, W), np.int32),
                 np.zeros(b.tiles_x * b.tiles_y, np.int64))
 
+    def forward_pair(head, act, b, dt):
+        """Seconds of the per-tile and the per-worker forward on the same inputs, their outputs, and whether
+        they are the same bytes."""
+        o1, o2 = fwd_outputs(b, dt), fwd_outputs(b, dt)
+        t1 = _timed(K._raster_fwd_kernel_per_tile, *head, act, *o1)
+        t2 = _timed(K.raster_fwd_kernel, *head, act, *o2, n_workers)
+        return t1, t2, o1, all(np.array_equal(x, y) for x, y in zip(o1, o2))
+
     with numba.parallel_chunksize(PARALLEL_CHUNK):
         for _ in range(args.rounds):
             for f in (1, 2):  # the trainer's full-size and coarse (half-size) steps
@@ -97,10 +100,8 @@ def main() -> int:
                     packed, uv64, b, xs, ys, act = frame_inputs(d.T_world_cam[k], it, mask)
                     cst = K.raster_constants(packed.dtype)
                     head = (packed, uv64, b.tile_start, b.sorted_row, it.width, it.height, b.tiles_x, xs, ys, cst)
-                    o1, o2 = fwd_outputs(b, packed.dtype), fwd_outputs(b, packed.dtype)
-                    t1 = _timed(K._raster_fwd_kernel_per_tile, *head, act, *o1)
-                    t2 = _timed(K.raster_fwd_kernel, *head, act, *o2, n_workers)
-                    if not all(np.array_equal(x, y) for x, y in zip(o1, o2)):
+                    t1, t2, o1, same = forward_pair(head, act, b, packed.dtype)
+                    if not same:
                         print(f"error: frame {k} at 1/{f}: the forward differs", file=sys.stderr)
                         return 1
                     add(f"training forward, {it.width}x{it.height}", t1, t2)
@@ -119,10 +120,8 @@ def main() -> int:
                 packed, uv64, b, xs, ys, act = frame_inputs(d.T_world_cam[k], intr, assets.rendered_pixels)
                 head = (packed, uv64, b.tile_start, b.sorted_row, intr.width, intr.height, b.tiles_x, xs, ys,
                         K.raster_constants(packed.dtype))
-                o1, o2 = fwd_outputs(b, packed.dtype), fwd_outputs(b, packed.dtype)
-                t1 = _timed(K._raster_fwd_kernel_per_tile, *head, act, *o1)
-                t2 = _timed(K.raster_fwd_kernel, *head, act, *o2, n_workers)
-                if not all(np.array_equal(x, y) for x, y in zip(o1, o2)):
+                t1, t2, _, same = forward_pair(head, act, b, packed.dtype)
+                if not same:
                     print(f"error: frame {k}: the export forward differs", file=sys.stderr)
                     return 1
                 add(f"export forward, {intr.width}x{intr.height}", t1, t2)

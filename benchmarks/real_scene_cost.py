@@ -100,6 +100,20 @@ def configs(overrides: dict[str, object]):
     return cfg, inp
 
 
+def real_episode_assets(dataset: Path, work: Path):
+    """The real episode's demo-0 assets with ``umi-aug augment``'s defaults, its stages built once (cached in
+    ``work``): ``(assets, None)``, or ``(None, error line)`` when the episode is not there."""
+    from _scratch import real_episode_missing
+
+    from umi_aug.augment.dataset_source import prepare_dataset
+
+    error = real_episode_missing(dataset)
+    if error:
+        return None, error
+    cfg, inp = configs({})
+    return prepare_dataset(dataset, work, cfg, inp, progress=False).for_demo(0), None
+
+
 def build_scene(dataset: Path, work: Path, overrides: dict[str, object]) -> dict:
     """One scene from an empty cache; per-stage seconds, SfM/cloud sizes and the 3DGS held-out quality."""
     from umi_aug.augment.dataset_source import prepare_dataset

@@ -26,8 +26,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _scratch import real_episode_missing  # noqa: E402
-from real_scene_cost import REAL, configs  # noqa: E402
+from real_scene_cost import REAL, real_episode_assets  # noqa: E402
 from umi_aug.runtime import configure_threads  # noqa: E402
 
 
@@ -58,19 +57,15 @@ def main() -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from umi_aug.augment.dataset_source import prepare_dataset
     from umi_aug.augment.overlay import composite_overlay
     from umi_aug.augment.render import render_view
     from umi_aug.splat.train_session import loss_mask
 
-    ds = Path(args.dataset)
-    error = real_episode_missing(ds)
+    t0 = time.perf_counter()
+    assets, error = real_episode_assets(Path(args.dataset), Path(args.work))
     if error:
         print(error, file=sys.stderr)
         return 2
-    cfg, inp = configs({})
-    t0 = time.perf_counter()
-    assets = prepare_dataset(ds, Path(args.work), cfg, inp, progress=False).for_demo(0)
     build_s = time.perf_counter() - t0
     d = assets.demos[0]
     idx = np.linspace(0, int(d.contact_index), args.frames).round().astype(int)
