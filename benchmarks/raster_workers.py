@@ -1,13 +1,19 @@
-"""How the rasteriser's tiles are shared among threads, on the real UMI episode's 3DGS scene (issue #34 item 1):
-numba handing out one tile per ``prange`` iteration (``_kernels._raster_fwd_kernel_per_tile`` /
-``_raster_bwd_kernel_per_tile``, the schedule before) against one ``prange`` iteration per worker, worker k taking
-tiles k, k + n, ... (``raster_fwd_kernel`` / ``raster_bwd_kernel`` / ``raster_fwd_fused_kernel``, now).
+"""How the rasteriser's tiles are shared among threads and how each tile's rows are evaluated, on the real UMI
+episode's 3DGS scene (issue #34 item 1), three kernels that give the same bytes:
+
+* ``per tile, scalar`` (before session 37): numba hands out one tile per ``prange`` iteration and each (Gaussian,
+  pixel) pair is evaluated on its own (``_kernels._raster_fwd_kernel_per_tile`` / ``_raster_bwd_kernel_per_tile``);
+* ``per worker, scalar`` (session 37): one ``prange`` iteration per worker, worker k taking tiles k, k + n, ...
+  (``_raster_fwd_kernel_scalar`` / ``_raster_bwd_kernel_scalar``);
+* ``per worker, lanes`` (now): as session 37's, each row's 16 alphas first computed in vector lanes
+  (``raster_fwd_kernel`` / ``raster_bwd_kernel``; ``raster_fwd_fused_kernel`` shares the loop).
+
 
 For pre-contact frames of the episode: the training forward and backward at full and half size (only the loss
 mask's pixels, as the trainer renders them; random pixel gradients) and the export's forward (only the pixels the
-gripper overlay leaves; timed with the plain kernel, whose schedule the export's fused twin shares). Both schedules
-must give the same bytes (checked on every call). Calls alternate (before, now) per frame over ``--rounds`` rounds;
-the table prints median ms and the ratio of the sums.
+gripper overlay leaves; timed with the plain kernel, whose loop the export's fused twin shares). The three must give
+the same bytes (checked on every call). Calls alternate per frame over ``--rounds`` rounds; the table prints median
+ms and the ratios of the sums.
 
     python benchmarks/raster_workers.py --work /tmp/raster_workers   # builds the episode's scene once (cached there)
 
@@ -66,10 +72,14 @@ def main() -> int:
     n_workers = numba.get_num_threads()
     rows: dict[str, dict[str, list[float]]] = {}
 
-    def add(name: str, before: float, now: float) -> None:
-        r = rows.setdefault(name, {"before": [], "now": []})
-        r["before"].append(before)
-        r["now"].append(now)
+    kernels = ("per tile, scalar", "per worker, scalar", "per worker, lanes")
+
+    def add(name: str, seconds: list[float]) -> None:
+        if warm_up:
+            return
+        r = rows.setdefault(name, {k: [] for k in kernels})
+        for k, sec in zip(kernels, seconds):
+            r[k].append(sec)
 
     def frame_inputs(T, it, pixels):
         packed, uv64, depth64, valid, counts = project_numba(g, torch.as_tensor(T), it, g.sh_degree, DEFAULT_FILTER)
@@ -83,57 +93,61 @@ def main() -> int:
         return (np.empty((H, W, 3), dt), np.empty((H, W), dt), np.empty((H, W), dt), np.empty((H, W), np.int32),
                 np.zeros(b.tiles_x * b.tiles_y, np.int64))
 
-    def forward_pair(head, act, b, dt):
-        """Seconds of the per-tile and the per-worker forward on the same inputs, their outputs, and whether
-        they are the same bytes."""
-        o1, o2 = fwd_outputs(b, dt), fwd_outputs(b, dt)
-        t1 = _timed(K._raster_fwd_kernel_per_tile, *head, act, *o1)
-        t2 = _timed(K.raster_fwd_kernel, *head, act, *o2, n_workers)
-        return t1, t2, o1, all(np.array_equal(x, y) for x, y in zip(o1, o2))
+    def forward_three(head, act, b, dt):
+        """Seconds of the three forwards on the same inputs, the reference's outputs, and whether all are the same
+        bytes."""
+        outs = [fwd_outputs(b, dt) for _ in kernels]
+        sec = [_timed(K._raster_fwd_kernel_per_tile, *head, act, *outs[0]),
+               _timed(K._raster_fwd_kernel_scalar, *head, act, *outs[1], n_workers),
+               _timed(K.raster_fwd_kernel, *head, act, *outs[2], n_workers)]
+        same = all(np.array_equal(x, y) for o in outs[1:] for x, y in zip(outs[0], o))
+        return sec, outs[0], same
 
     with numba.parallel_chunksize(PARALLEL_CHUNK):
-        for _ in range(args.rounds):
+        for rnd in range(args.rounds + 1):  # round 0 (one frame, not timed): every kernel compiled or loaded
+            warm_up = rnd == 0
+            frames = idx[:1] if warm_up else idx
             for f in (1, 2):  # the trainer's full-size and coarse (half-size) steps
                 it = intr if f == 1 else intr.scaled(intr.width // f, intr.height // f)
                 mask = loss_mask(it)
-                for k in idx:
+                for k in frames:
                     packed, uv64, b, xs, ys, act = frame_inputs(d.T_world_cam[k], it, mask)
                     cst = K.raster_constants(packed.dtype)
                     head = (packed, uv64, b.tile_start, b.sorted_row, it.width, it.height, b.tiles_x, xs, ys, cst)
-                    t1, t2, o1, same = forward_pair(head, act, b, packed.dtype)
+                    sec, o1, same = forward_three(head, act, b, packed.dtype)
                     if not same:
                         print(f"error: frame {k} at 1/{f}: the forward differs", file=sys.stderr)
                         return 1
-                    add(f"training forward, {it.width}x{it.height}", t1, t2)
+                    add(f"training forward, {it.width}x{it.height}", sec)
                     grads = tuple(rng.normal(size=s).astype(packed.dtype) for s in
                                   ((it.height, it.width, 3), (it.height, it.width), (it.height, it.width)))
-                    g1 = np.empty((b.n_isects, K.GRAD_COLS), packed.dtype)
-                    g2 = np.empty_like(g1)
-                    t1 = _timed(K._raster_bwd_kernel_per_tile, *head, o1[2], o1[3], *grads, g1)
-                    t2 = _timed(K.raster_bwd_kernel, *head, o1[2], o1[3], *grads, g2, n_workers)
-                    if not np.array_equal(g1, g2):
+                    gs = [np.empty((b.n_isects, K.GRAD_COLS), packed.dtype) for _ in kernels]
+                    sec = [_timed(K._raster_bwd_kernel_per_tile, *head, o1[2], o1[3], *grads, gs[0]),
+                           _timed(K._raster_bwd_kernel_scalar, *head, o1[2], o1[3], *grads, gs[1], n_workers),
+                           _timed(K.raster_bwd_kernel, *head, o1[2], o1[3], *grads, gs[2], n_workers)]
+                    if not all(np.array_equal(gs[0], x) for x in gs[1:]):
                         print(f"error: frame {k} at 1/{f}: the backward differs", file=sys.stderr)
                         return 1
-                    add(f"training backward, {it.width}x{it.height}", t1, t2)
-            for k in idx:  # the export's forward: the overlay's open pixels (the plain kernel; the export runs its
-                # fused twin, raster_fwd_fused_kernel, with the same schedule)
+                    add(f"training backward, {it.width}x{it.height}", sec)
+            for k in frames:  # the export's forward: the overlay's open pixels (the plain kernel; the export runs its
+                # fused twin, raster_fwd_fused_kernel, with the same loop)
                 packed, uv64, b, xs, ys, act = frame_inputs(d.T_world_cam[k], intr, assets.rendered_pixels)
                 head = (packed, uv64, b.tile_start, b.sorted_row, intr.width, intr.height, b.tiles_x, xs, ys,
                         K.raster_constants(packed.dtype))
-                t1, t2, _, same = forward_pair(head, act, b, packed.dtype)
+                sec, _, same = forward_three(head, act, b, packed.dtype)
                 if not same:
                     print(f"error: frame {k}: the export forward differs", file=sys.stderr)
                     return 1
-                add(f"export forward, {intr.width}x{intr.height}", t1, t2)
-
-    console = Console(width=140)
+                add(f"export forward, {intr.width}x{intr.height}", sec)
+    console = Console(width=160)
     t = Table(title=f"the real episode's 3DGS ({g.n} Gaussians), {len(idx)} pre-contact frames x {args.rounds} rounds, "
-                    f"{n_workers} threads: one tile per hand-out (before) against one share per worker (now)")
-    for c in ("what", "before: median ms", "now: median ms", "x (sum before / sum now)"):
+                    f"{n_workers} threads")
+    for c in ("what", *(f"{k}: median ms" for k in kernels), "x workers (sums)", "x lanes (sums)", "x both"):
         t.add_column(c, justify="right")
     for name, r in rows.items():
-        t.add_row(name, f"{1e3 * statistics.median(r['before']):.2f}", f"{1e3 * statistics.median(r['now']):.2f}",
-                  f"{sum(r['before']) / sum(r['now']):.2f}")
+        tot = [sum(r[k]) for k in kernels]
+        t.add_row(name, *(f"{1e3 * statistics.median(r[k]):.2f}" for k in kernels),
+                  f"{tot[0] / tot[1]:.2f}", f"{tot[1] / tot[2]:.2f}", f"{tot[0] / tot[2]:.2f}")
     console.print(t)
     console.print("the same bytes on every forward and backward")
     return 0
