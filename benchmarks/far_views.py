@@ -29,6 +29,10 @@ Settings (``--settings``):
 * ``one demo, 3DGS schedule before (...)``: the default's scene trained as a dataset's scenes were before
   2026-11-29: 1,200 steps (first half at half size) at the trainer's learning rates and growth, where the default is
   600 steps with ``DATASET_SPLAT_SCHEDULE`` (``umi_aug/augment/splat_defaults.py``; ``docs/real_scale.md`` 1f).
+* ``one demo, pose pairs (...)``: the default before session 38: the known-pose triangulation also matches every
+  two frames within 0.25 m and 45° (``DatasetInput.sfm_pose_pairs``; the default matches only each frame's
+  sequential neighbours and the loop grid, a third less triangulation time on the real episode,
+  ``docs/real_scale.md`` 1i).
 * ``scan + demos``: the session path (``umi-aug augment <session>``): the mapping scan's frames and both demos
   (the upper bound a short scan gives).
 
@@ -56,8 +60,10 @@ if str(ROOT) not in sys.path:
 SCHEDULE_BEFORE = "one demo, 3DGS schedule before (1,200 steps, the trainer's rates and growth)"
 #: the dataset defaults before 2026-11-27: every 2nd frame triangulated, 600 full-size steps, the trainer's schedule
 DEFAULTS_BEFORE = "one demo, before (every 2nd frame, 600 full-size steps)"
+#: the known-pose triangulation also matching every two frames within 0.25 m and 45 deg (the default before session 38)
+POSE_PAIRS = "one demo, pose pairs (the default before session 38)"
 SETTINGS = ("one demo, no shell", "one demo (default)", DEFAULTS_BEFORE,
-            "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos", SCHEDULE_BEFORE)
+            "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos", SCHEDULE_BEFORE, POSE_PAIRS)
 
 
 def cone_ring_poses(T_ref: np.ndarray, radius: float, theta: float, n: int) -> np.ndarray:
@@ -129,7 +135,8 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
     pooled = setting == "two demos pooled"
     inp = DatasetInput(episodes=(0, 1) if pooled else (0,), scene_group=2 if pooled else 1,
                        background_points=0 if "no shell" in setting else DatasetInput.background_points,
-                       sfm_stride=2 if (before or "2nd" in setting) else DatasetInput.sfm_stride)
+                       sfm_stride=2 if (before or "2nd" in setting) else DatasetInput.sfm_stride,
+                       sfm_pose_pairs=True if (before or setting == POSE_PAIRS) else None)
     dataset = jittered_dataset(session, work.parent / "dataset_jittered.zarr.zip")
     assets = prepare_dataset(dataset, work, cfg, inp, progress=False)
     return assets.for_demo(0), time.perf_counter() - t0

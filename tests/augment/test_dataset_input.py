@@ -287,3 +287,33 @@ def test_train_py_aug_builds_the_scene_umi_aug_augment_builds(tmp_path):
         assert aug_splat_stage(AugConfig(splat_iterations=7, splat_coarse_downscale=1), plain) == cli.splat
     st = aug_splat_stage(AugConfig(splat_scale_reg=0.5, splat_max_gaussians=900), True)
     assert (st.scale_reg, st.max_gaussians, st.iterations) == (0.5, 900, aug_splat_stage(AugConfig(), True).iterations)
+
+
+@pytest.mark.parametrize("group, pose_pairs, expected_m", [
+    (1, None, 0.0),  # one episode: sequential and loop-grid pairs only (the default)
+    (2, None, 0.25),  # pooled episodes: the pose pairs tie their frames together
+    (1, True, 0.25),
+    (2, False, 0.0),
+])
+def test_triangulation_pose_pairs_by_scene_kind(tmp_path, monkeypatch, good, group, pose_pairs, expected_m):
+    """``DatasetInput.sfm_pose_pairs``: the known-pose triangulation of a one-episode scene matches no pose pairs
+    unless asked to; a scene pooling several episodes keeps them (``SfmConfig.pose_pair_max_dist_m``)."""
+    import umi_aug.augment.dataset_source as ds
+    from umi_aug.augment.config import AugmentConfig
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_run_sfm(paths, names, intr, work, cfg, **kw):
+        seen.append((cfg.mode, cfg.pose_pair_max_dist_m, cfg.pose_pair_max_angle_deg))
+        raise Stop
+
+    monkeypatch.setattr(ds, "run_sfm", fake_run_sfm)
+    path = _write(tmp_path / "d.zarr.zip", good[:2])
+    with pytest.raises(Stop):
+        ds.prepare_dataset(path, tmp_path / "work", AugmentConfig(image_size=S),
+                           ds.DatasetInput(scene_group=group, sfm_pose_pairs=pose_pairs, background_points=0),
+                           progress=False)
+    assert seen[0] == ("known_poses", expected_m, 45.0)
