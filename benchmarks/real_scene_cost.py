@@ -60,6 +60,7 @@ SETTINGS: dict[str, dict[str, object]] = {
     "no x2 upscale for SIFT": {"inp.sfm_upscale": 1},
     "every 2nd frame to SfM (4th)": {"inp.sfm_stride": 2},
     "overlap 3, no loop grid": {"sfm.overlap": 3, "sfm.loop_stride": 0},
+    "overlap 3 (6)": {"sfm.overlap": 3},
     "pose pairs within 0.12 m, 30 deg (none)": {"inp.sfm_pose_pairs": True, "sfm.pose_pair_max_dist_m": 0.12,
                                                 "sfm.pose_pair_max_angle_deg": 30.0},
     "pose pairs within 0.25 m, 45 deg (none; the default before session 38)": {"inp.sfm_pose_pairs": True},
