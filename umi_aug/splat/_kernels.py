@@ -523,6 +523,18 @@ def _gather_tile(packed, uv64, sorted_row, s0, s1, x0, y0):  # pragma: no cover 
 
 
 @njit(cache=True, inline="always")
+def _tile_gaussian(tp, j):  # pragma: no cover - compiled
+    """Row ``j`` of a tile's gathered Gaussians (:func:`_gather_tile`) as the tile loops read it: ``(mx, my, a,
+    opacity, r, g, b, ray_depth, gamma, beta)`` in the working dtype, then ``(mx, my, lim, gamma, beta, 1/a)`` in
+    float64 for the row spans."""
+    mx, my = tp[j, 0], tp[j, 1]
+    gam, bet = tp[j, 12], tp[j, 13]
+    return (mx, my, tp[j, 2], tp[j, 5], tp[j, 6], tp[j, 7], tp[j, 8], tp[j, 9], gam, bet,
+            np.float64(mx), np.float64(my), np.float64(tp[j, 10]), np.float64(gam), np.float64(bet),
+            np.float64(tp[j, 14]))
+
+
+@njit(cache=True, inline="always")
 def _fwd_tile_begin(t, packed, uv64, tile_start, sorted_row, width, height, tiles_x, cst, active):
     """Tile ``t``'s frame and start state for the forward tile loops: ``(x0, y0, tw, th, npix, T, Cr, Cg, Cb, D,
     last, done, n_done, s0, tp)`` — pixels with ``active`` False start done; a tile without an active pixel gathers
@@ -634,12 +646,7 @@ def _raster_fwd_tile(
     for j in range(tp.shape[0]):
         if tp[j, 10] < zero:
             continue
-        mx, my = tp[j, 0], tp[j, 1]
-        a, op = tp[j, 2], tp[j, 5]
-        cr, cg, cb, dep = tp[j, 6], tp[j, 7], tp[j, 8], tp[j, 9]
-        gam, bet = tp[j, 12], tp[j, 13]
-        mx64, my64 = np.float64(mx), np.float64(my)
-        lim64, gam64, bet64, inva64 = np.float64(tp[j, 10]), np.float64(gam), np.float64(bet), np.float64(tp[j, 14])
+        mx, my, a, op, cr, cg, cb, dep, gam, bet, mx64, my64, lim64, gam64, bet64, inva64 = _tile_gaussian(tp, j)
         ya, yb = _pixel_range(my64, np.float64(tp[j, 11]), 0, th - 1)
         s32 = np.int32(s0 + j)
         for y in range(ya, yb + 1):
@@ -677,12 +684,7 @@ def _raster_fwd_tile_scalar(
     for j in range(tp.shape[0]):
         if tp[j, 10] < zero:
             continue
-        mx, my = tp[j, 0], tp[j, 1]
-        a, op = tp[j, 2], tp[j, 5]
-        cr, cg, cb, dep = tp[j, 6], tp[j, 7], tp[j, 8], tp[j, 9]
-        gam, bet = tp[j, 12], tp[j, 13]
-        mx64, my64 = np.float64(mx), np.float64(my)
-        lim64, gam64, bet64, inva64 = np.float64(tp[j, 10]), np.float64(gam), np.float64(bet), np.float64(tp[j, 14])
+        mx, my, a, op, cr, cg, cb, dep, gam, bet, mx64, my64, lim64, gam64, bet64, inva64 = _tile_gaussian(tp, j)
         ya, yb = _pixel_range(my64, np.float64(tp[j, 11]), 0, th - 1)
         s32 = np.int32(s0 + j)
         for y in range(ya, yb + 1):
@@ -901,12 +903,7 @@ def _raster_bwd_tile(
         j = s - s_begin
         if tp[j, 10] < zero:
             continue
-        mx, my = tp[j, 0], tp[j, 1]
-        a, op = tp[j, 2], tp[j, 5]
-        cr, cg, cb, dep = tp[j, 6], tp[j, 7], tp[j, 8], tp[j, 9]
-        gam, bet = tp[j, 12], tp[j, 13]
-        mx64, my64 = np.float64(mx), np.float64(my)
-        lim64, gam64, bet64, inva64 = np.float64(tp[j, 10]), np.float64(gam), np.float64(bet), np.float64(tp[j, 14])
+        mx, my, a, op, cr, cg, cb, dep, gam, bet, mx64, my64, lim64, gam64, bet64, inva64 = _tile_gaussian(tp, j)
         a64, b64, c64 = np.float64(a), np.float64(tp[j, 3]), np.float64(tp[j, 4])
         ya, yb = _pixel_range(my64, np.float64(tp[j, 11]), 0, th - 1)
         acc[:] = 0.0
@@ -950,12 +947,7 @@ def _raster_bwd_tile_scalar(
         j = s - s_begin
         if tp[j, 10] < zero:
             continue
-        mx, my = tp[j, 0], tp[j, 1]
-        a, op = tp[j, 2], tp[j, 5]
-        cr, cg, cb, dep = tp[j, 6], tp[j, 7], tp[j, 8], tp[j, 9]
-        gam, bet = tp[j, 12], tp[j, 13]
-        mx64, my64 = np.float64(mx), np.float64(my)
-        lim64, gam64, bet64, inva64 = np.float64(tp[j, 10]), np.float64(gam), np.float64(bet), np.float64(tp[j, 14])
+        mx, my, a, op, cr, cg, cb, dep, gam, bet, mx64, my64, lim64, gam64, bet64, inva64 = _tile_gaussian(tp, j)
         a64, b64, c64 = np.float64(a), np.float64(tp[j, 3]), np.float64(tp[j, 4])
         ya, yb = _pixel_range(my64, np.float64(tp[j, 11]), 0, th - 1)
         acc[:] = 0.0
