@@ -33,6 +33,8 @@ Settings (``--settings``):
   two frames within 0.25 m and 45° (``DatasetInput.sfm_pose_pairs``; the default matches only each frame's
   sequential neighbours and the loop grid, a third less triangulation time on the real episode,
   ``docs/real_scale.md`` 1i).
+* ``two demos pooled, pose pairs (...)``: the pooled scene as before session 38, its triangulation also matching
+  every two frames within 0.25 m and 45° (the loop grid alone also spans both demos).
 * ``scan + demos``: the session path (``umi-aug augment <session>``): the mapping scan's frames and both demos
   (the upper bound a short scan gives).
 
@@ -62,8 +64,11 @@ SCHEDULE_BEFORE = "one demo, 3DGS schedule before (1,200 steps, the trainer's ra
 DEFAULTS_BEFORE = "one demo, before (every 2nd frame, 600 full-size steps)"
 #: the known-pose triangulation also matching every two frames within 0.25 m and 45 deg (the default before session 38)
 POSE_PAIRS = "one demo, pose pairs (the default before session 38)"
+#: both demos pooled with the triangulation also matching pose pairs (the default before session 38)
+POOLED_POSE_PAIRS = "two demos pooled, pose pairs (the default before session 38)"
 SETTINGS = ("one demo, no shell", "one demo (default)", DEFAULTS_BEFORE,
-            "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos", SCHEDULE_BEFORE, POSE_PAIRS)
+            "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos", SCHEDULE_BEFORE, POSE_PAIRS,
+            POOLED_POSE_PAIRS)
 
 
 def cone_ring_poses(T_ref: np.ndarray, radius: float, theta: float, n: int) -> np.ndarray:
@@ -132,11 +137,11 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
     if setting == SCHEDULE_BEFORE:
         splat = dataclasses.replace(splat, iterations=iterations or 1200, extra={})
     cfg = dataclasses.replace(base, mode="freespace", splat=splat)
-    pooled = setting == "two demos pooled"
+    pooled = setting in ("two demos pooled", POOLED_POSE_PAIRS)
     inp = DatasetInput(episodes=(0, 1) if pooled else (0,), scene_group=2 if pooled else 1,
                        background_points=0 if "no shell" in setting else DatasetInput.background_points,
                        sfm_stride=2 if (before or "2nd" in setting) else DatasetInput.sfm_stride,
-                       sfm_pose_pairs=True if (before or setting == POSE_PAIRS) else None)
+                       sfm_pose_pairs=before or setting in (POSE_PAIRS, POOLED_POSE_PAIRS))
     dataset = jittered_dataset(session, work.parent / "dataset_jittered.zarr.zip")
     assets = prepare_dataset(dataset, work, cfg, inp, progress=False)
     return assets.for_demo(0), time.perf_counter() - t0

@@ -290,14 +290,14 @@ def test_train_py_aug_builds_the_scene_umi_aug_augment_builds(tmp_path):
 
 
 @pytest.mark.parametrize("group, pose_pairs, expected_m", [
-    (1, None, 0.0),  # one episode: sequential and loop-grid pairs only (the default)
-    (2, None, 0.25),  # pooled episodes: the pose pairs tie their frames together
-    (1, True, 0.25),
-    (2, False, 0.0),
+    (1, None, 0.0),  # the default: sequential and loop-grid pairs only
+    (2, None, 0.0),  # pooled episodes too (the loop grid spans them)
+    (1, True, 0.25),  # asked for: every two frames within SfmConfig.pose_pair_max_dist_m
+    (2, True, 0.25),
 ])
-def test_triangulation_pose_pairs_by_scene_kind(tmp_path, monkeypatch, good, group, pose_pairs, expected_m):
-    """``DatasetInput.sfm_pose_pairs``: the known-pose triangulation of a one-episode scene matches no pose pairs
-    unless asked to; a scene pooling several episodes keeps them (``SfmConfig.pose_pair_max_dist_m``)."""
+def test_triangulation_pose_pairs_only_when_asked(tmp_path, monkeypatch, good, group, pose_pairs, expected_m):
+    """``DatasetInput.sfm_pose_pairs``: a dataset scene's known-pose triangulation (one episode or pooled) matches
+    no pose pairs unless asked to (``SfmConfig.pose_pair_max_dist_m`` 0), whatever the caller's SfM config says."""
     import umi_aug.augment.dataset_source as ds
     from umi_aug.augment.config import AugmentConfig
 
@@ -314,6 +314,7 @@ def test_triangulation_pose_pairs_by_scene_kind(tmp_path, monkeypatch, good, gro
     path = _write(tmp_path / "d.zarr.zip", good[:2])
     with pytest.raises(Stop):
         ds.prepare_dataset(path, tmp_path / "work", AugmentConfig(image_size=S),
-                           ds.DatasetInput(scene_group=group, sfm_pose_pairs=pose_pairs, background_points=0),
+                           ds.DatasetInput(scene_group=group, background_points=0,
+                                           **({} if pose_pairs is None else {"sfm_pose_pairs": pose_pairs})),
                            progress=False)
     assert seen[0] == ("known_poses", expected_m, 45.0)

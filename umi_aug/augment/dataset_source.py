@@ -102,12 +102,12 @@ class DatasetInput:
             -0.6 dB at far cone starts: docs/real_scale.md sections 1, 1b and 5).
         sfm_upscale: frames are enlarged this many times (bicubic) for SIFT: 224² policy frames give few
             features (563 points on the real cup episode at x1).
-        sfm_pose_pairs: besides each frame's sequential neighbours and the loop grid, the triangulation also matches
-            every two frames whose known poses are close (``SfmConfig.pose_pair_max_dist_m`` / ``_deg``). None (the
-            default): only in scenes that pool several episodes (where they tie the episodes' frames together; not
-            measured without them). A one-episode scene without them: on the real cup episode 194 of 416 pairs
-            fewer and a third less triangulation time at the same held-out PSNR (+0.03 dB over 3 seeds), and on the
-            synthetic session's demo 0.4-0.75 dB better at every cone start (docs/real_scale.md 1i).
+        sfm_pose_pairs: besides each frame's sequential neighbours and the loop grid (which spans every episode of a
+            pooled scene), the triangulation also matches every two frames whose known poses are close
+            (``SfmConfig.pose_pair_max_dist_m`` / ``_deg``). Off by default: on the real cup episode that is 194 of
+            416 pairs and a third of the triangulation time, at the same held-out PSNR without them (+0.03 dB over 3
+            seeds); on the synthetic session they cost 0.4-0.75 dB at every cone start for one demo's scene and
+            0.03-0.31 dB for two demos pooled (-0.11 dB held-out there; docs/real_scale.md 1i).
         view_stride: every n-th pre-splice frame is a 3DGS view.
         background_points: Gaussians on the far-background shell (0 = none).
         background_radius: shell radius in multiples of the cameras' spread (≥ 3).
@@ -121,7 +121,7 @@ class DatasetInput:
     scene_map: Mapping[str, Sequence[int]] | None = None
     sfm_stride: int = 4
     sfm_upscale: int = 2
-    sfm_pose_pairs: bool | None = None
+    sfm_pose_pairs: bool = False
     view_stride: int = 1
     background_points: int = 4000
     background_radius: float = 8.0
@@ -447,8 +447,7 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
                  fps: dict[int, float], cfg: AugmentConfig, inp: DatasetInput) -> StageResult:
     """Known-pose triangulation + cloud + SDF + contacts of one group (outputs as the session reconstruction's)."""
     # known poses always (the TCP poses are the SLAM's); the same key whatever sfm.mode the caller left
-    pooled = len(eps) > 1
-    pose_pairs = {} if (pooled if inp.sfm_pose_pairs is None else inp.sfm_pose_pairs) else {"pose_pair_max_dist_m": 0.0}
+    pose_pairs = {} if inp.sfm_pose_pairs else {"pose_pair_max_dist_m": 0.0}
     rc = dataclasses.replace(cfg.recon, cone_half_angle_deg=cfg.cone_half_angle_deg,
                              sfm=dataclasses.replace(cfg.recon.sfm, mode="known_poses", **pose_pairs))
     up = max(1, int(inp.sfm_upscale))
