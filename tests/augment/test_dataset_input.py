@@ -227,9 +227,10 @@ def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
     """A plain dataset gets the measured episode-frame 3DGS defaults, a session the scan defaults; explicit flags
     win over both."""
     from umi_aug.augment.cli import config_from_args
-    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_ITERATIONS,
-                                        DATASET_SPLAT_MAX_GAUSSIANS, DATASET_SPLAT_SCALE_REG, DATASET_SPLAT_SCHEDULE,
-                                        SESSION_SPLAT_SCALE_REG, AugmentConfig)
+    from umi_aug.augment.config import (DATASET_SPLAT_COARSE_DOWNSCALE, DATASET_SPLAT_EVALUATION,
+                                        DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS,
+                                        DATASET_SPLAT_SCALE_REG, DATASET_SPLAT_SCHEDULE, SESSION_SPLAT_SCALE_REG,
+                                        AugmentConfig)
     from umi_aug.splat.train import SplatTrainConfig
 
     parser, ds, session = _augment_parser_and_inputs(tmp_path)
@@ -243,6 +244,7 @@ def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
     tcfg.check()
     assert {k: getattr(tcfg, k) for k, _ in DATASET_SPLAT_SCHEDULE} == dict(DATASET_SPLAT_SCHEDULE)
     assert tcfg.lr_sh0 > SplatTrainConfig.lr_sh0 and tcfg.refine_every < SplatTrainConfig.refine_every
+    assert (tcfg.eval_every, tcfg.eval_at_start) == (0, False)  # evaluated once, after the last step
     cfg = config_from_args(parser.parse_args(["augment", str(session), "--out", str(tmp_path / "o.zarr.zip")]))
     assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (base.iterations, base.max_gaussians)
     assert cfg.splat.scale_reg == base.scale_reg == SESSION_SPLAT_SCALE_REG
@@ -254,17 +256,20 @@ def test_cli_3dgs_defaults_depend_on_the_input_kind(tmp_path):
     cfg = config_from_args(parser.parse_args(["augment", str(ds), "--out", "o.zarr.zip", "--splat-iterations", "7",
                                               "--splat-max-gaussians", "900"]))
     assert (cfg.splat.iterations, cfg.splat.max_gaussians) == (7, 900)
-    assert cfg.splat.extra == dict(DATASET_SPLAT_SCHEDULE)  # the flags change the steps, not the schedule
+    # the flags change the steps, not the schedule or when it is evaluated
+    assert cfg.splat.extra == {**dict(DATASET_SPLAT_SCHEDULE), **dict(DATASET_SPLAT_EVALUATION)}
 
 
 def test_dataset_splat_stage_lays_given_fields_over_the_dataset_defaults():
-    from umi_aug.augment.config import DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_SCHEDULE, dataset_splat_stage
+    from umi_aug.augment.config import (DATASET_SPLAT_EVALUATION, DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_SCHEDULE,
+                                        dataset_splat_stage)
 
     assert dataset_splat_stage().iterations == DATASET_SPLAT_ITERATIONS
     assert dataset_splat_stage(iterations=None, coarse_downscale=None) == dataset_splat_stage()
     st = dataset_splat_stage(iterations=0, extra={"lr_sh0": 0.5, "seed": 3})
     assert st.iterations == 0  # 0 is given (the untrained init), not the default
-    assert st.extra == {**dict(DATASET_SPLAT_SCHEDULE), "lr_sh0": 0.5, "seed": 3}
+    assert st.extra == {**dict(DATASET_SPLAT_SCHEDULE), **dict(DATASET_SPLAT_EVALUATION), "lr_sh0": 0.5, "seed": 3}
+    assert dataset_splat_stage(extra={"eval_every": 100}).extra["eval_every"] == 100
     assert dataset_splat_stage().extra is not dataset_splat_stage().extra  # no shared mutable default
 
 

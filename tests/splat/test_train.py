@@ -100,6 +100,28 @@ def test_resume_equals_uninterrupted(problem, tmp_path, rng):
     assert again.gaussians == full.gaussians
 
 
+def test_evaluating_only_at_the_end_trains_the_same_scene(problem, tmp_path, rng):
+    """``eval_every = 0`` and ``eval_at_start = False`` (a dataset scene's settings) leave one evaluation, after the
+    last step, and the same trained Gaussians as evaluating at 0, 20 and 40 (evaluations draw no random numbers);
+    switching them on a checkpoint still resumes."""
+    views, intr, init = problem
+    cfg = replace(CFG, iterations=40, eval_every=20, checkpoint_every=1000, seed=int(rng.integers(1000)))
+    full = train_splat(views, intr, init, None, cfg, tmp_path / "a", progress=False)
+    assert [h["iteration"] for h in full.history] == [0, 20, 40]
+    once = replace(cfg, eval_every=0, eval_at_start=False)
+    end = train_splat(views, intr, init, None, once, tmp_path / "b", progress=False)
+    assert [h["iteration"] for h in end.history] == [40]
+    assert end.gaussians == full.gaussians
+    assert end.heldout_psnr == full.heldout_psnr and end.heldout_ssim == full.heldout_ssim
+    assert (tmp_path / "b" / "curve.png").is_file() and (tmp_path / "b" / "contact_sheet.png").is_file()
+    part = train_splat(views, intr, init, None, once, tmp_path / "c", progress=False, stop_at=13)
+    assert part.history == []
+    resumed = train_splat(views, intr, init, None, cfg, tmp_path / "c", progress=False)
+    assert resumed.gaussians == full.gaussians and [h["iteration"] for h in resumed.history] == [20, 40]
+    with pytest.raises(SplatError, match="eval_every"):
+        train_splat(views, intr, init, cfg=replace(CFG, eval_every=-1), progress=False)
+
+
 def test_bad_inputs(problem):
     views, intr, init = problem
     with pytest.raises(SplatError, match="image"):
@@ -234,3 +256,24 @@ def test_coarse_settings_are_checked_and_old_checkpoints_resume(problem, tmp_pat
         ck["iteration"] = 10
         torch.save(ck, path)
         train_splat(views, intr, init, None, replace(cfg, coarse_downscale=2), tmp_path / "old", progress=False)
+
+
+def test_evaluation_ssim_equals_masked_ssim(problem):
+    """The trainer's held-out SSIM (the fused loss's, with the view's kept target statistics) is
+    :func:`masked_ssim`'s mean within float32 rounding, and its PSNR :func:`masked_psnr`'s exactly."""
+    from umi_aug.splat.losses import masked_psnr, masked_ssim
+    from umi_aug.splat.train import _Data, _evaluate, _render
+
+    views, intr, init = problem
+    g = _scene(np.random.default_rng(5), n=120)
+    g = Gaussians(**{k: v.float() for k, v in g.tensors().items()})
+    data = _Data(views)
+    idx = [0, 3, 5]
+    psnr, ssim = _evaluate(g, data, idx, intr, CFG, 1)
+    ref_p, ref_s = [], []
+    for i in idx:
+        rgb = _render(g, data, i, intr, CFG, 1).rgb.clamp(0.0, 1.0)
+        ref_p.append(masked_psnr(rgb, data.images[i], data.masks[i]))
+        ref_s.append(float(masked_ssim(rgb, data.images[i], data.masks[i])))
+    assert psnr == float(np.mean(ref_p))
+    assert math.isfinite(ssim) and 0.0 < ssim < 1.0 and abs(ssim - float(np.mean(ref_s))) < 1e-5

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from umi_aug.augment.mirrors import MIRROR_MODES
-from umi_aug.augment.splat_defaults import (DATASET_SPLAT_ITERATIONS, DATASET_SPLAT_MAX_GAUSSIANS,
-                                            DATASET_SPLAT_SCHEDULE)
+from umi_aug.augment.splat_defaults import (DATASET_SPLAT_EVALUATION, DATASET_SPLAT_ITERATIONS,
+                                            DATASET_SPLAT_MAX_GAUSSIANS, DATASET_SPLAT_SCHEDULE)
 from umi_aug.errors import AugmentError
 from umi_aug.recon.pipeline import ReconConfig
 from umi_aug.recon.sfm import SfmConfig
@@ -23,7 +23,8 @@ from umi_aug.traj.config import TrajConfig
 
 __all__ = ["MODES", "SESSION_SPLAT_ITERATIONS", "SESSION_SPLAT_MAX_GAUSSIANS", "SESSION_SPLAT_SCALE_REG",
            "DATASET_SPLAT_SCALE_REG", "DATASET_SPLAT_COARSE_DOWNSCALE", "DATASET_SPLAT_ITERATIONS",
-           "DATASET_SPLAT_MAX_GAUSSIANS", "DATASET_SPLAT_SCHEDULE", "dataset_splat_stage", "TRAINER_SCALE_REG",
+           "DATASET_SPLAT_MAX_GAUSSIANS", "DATASET_SPLAT_SCHEDULE", "DATASET_SPLAT_EVALUATION", "dataset_splat_stage",
+           "TRAINER_SCALE_REG",
            "DEFAULT_RENDER_MIN_TRANSMITTANCE", "splat_key",
            "SplatStageConfig", "ObstacleConfig", "OverlayConfig", "AugmentConfig", "config_hash", "jsonable",
            "modes_of"]
@@ -89,10 +90,11 @@ class SplatStageConfig:
 def dataset_splat_stage(**fields: Any) -> SplatStageConfig:
     """The 3DGS stage of a plain dataset's scenes: :data:`DATASET_SPLAT_ITERATIONS` steps (the first half at
     1/:data:`DATASET_SPLAT_COARSE_DOWNSCALE` size), :data:`DATASET_SPLAT_MAX_GAUSSIANS` Gaussians,
-    :data:`DATASET_SPLAT_SCALE_REG` and :data:`DATASET_SPLAT_SCHEDULE`. ``fields``: any ``SplatStageConfig`` field to
-    set instead (``None`` = the default; an ``extra`` dict is laid over the schedule)."""
+    :data:`DATASET_SPLAT_SCALE_REG`, :data:`DATASET_SPLAT_SCHEDULE`, evaluated once at the end
+    (:data:`DATASET_SPLAT_EVALUATION`). ``fields``: any ``SplatStageConfig`` field to set instead (``None`` = the
+    default; an ``extra`` dict is laid over the schedule and the evaluation settings)."""
     given = {k: v for k, v in fields.items() if v is not None}
-    extra = {**dict(DATASET_SPLAT_SCHEDULE), **dict(given.pop("extra", {}))}
+    extra = {**dict(DATASET_SPLAT_SCHEDULE), **dict(DATASET_SPLAT_EVALUATION), **dict(given.pop("extra", {}))}
     kw = {"iterations": DATASET_SPLAT_ITERATIONS, "max_gaussians": DATASET_SPLAT_MAX_GAUSSIANS,
           "scale_reg": DATASET_SPLAT_SCALE_REG, "coarse_downscale": DATASET_SPLAT_COARSE_DOWNSCALE, **given}
     kw["coarse_downscale"] = int(kw["coarse_downscale"])

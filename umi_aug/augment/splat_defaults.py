@@ -4,7 +4,8 @@ that imports nothing: the command line's help shows them without loading the pip
 
 from __future__ import annotations
 
-__all__ = ["DATASET_SPLAT_ITERATIONS", "DATASET_SPLAT_MAX_GAUSSIANS", "DATASET_SPLAT_SCHEDULE"]
+__all__ = ["DATASET_SPLAT_ITERATIONS", "DATASET_SPLAT_MAX_GAUSSIANS", "DATASET_SPLAT_SCHEDULE",
+           "DATASET_SPLAT_EVALUATION"]
 
 #: 3DGS steps and Gaussian budget, with :data:`DATASET_SPLAT_SCHEDULE`: on UMI's real "cup in the wild" episode 600
 #: steps reach 27.4 dB held-out in 0.56x the 3DGS time of the 1,200 steps at the trainer's rates that were the
@@ -19,3 +20,9 @@ DATASET_SPLAT_MAX_GAUSSIANS: int = 30_000
 DATASET_SPLAT_SCHEDULE: tuple[tuple[str, float], ...] = (
     ("lr_sh0", 1e-2), ("lr_scales", 1.5e-2), ("lr_means", 3.2e-4), ("lr_opacities", 0.1),
     ("refine_start", 100), ("refine_every", 50), ("growth_factor", 1.1))
+#: When a dataset scene's 3DGS is evaluated (``SplatTrainConfig`` fields, laid into ``SplatStageConfig.extra`` after
+#: the schedule): once, after the last step. The trainer's default also evaluates the initial Gaussians and every 500
+#: steps (the learning curve), 2 of the 3 evaluations of a 600-step run: ~1.6 s of the real episode's ~35 s 3DGS
+#: stage. Evaluations draw no random numbers, so the trained scene is the same either way (``docs/real_scale.md``
+#: section 1j).
+DATASET_SPLAT_EVALUATION: tuple[tuple[str, object], ...] = (("eval_every", 0), ("eval_at_start", False))

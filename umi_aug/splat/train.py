@@ -37,7 +37,7 @@ from umi_aug.errors import SplatError
 from umi_aug.io_utils import atomic_path
 from umi_aug.splat.densify import grow, inject_noise, relocate_dead
 from umi_aug.splat.gaussians import Gaussians
-from umi_aug.splat.losses import masked_psnr, masked_ssim, photometric_loss_fused, ssim_target_stats
+from umi_aug.splat.losses import masked_psnr, photometric_loss_fused, ssim_target_stats
 from umi_aug.splat.optim import GaussianAdam
 from umi_aug.splat.ply import write_ply
 from umi_aug.splat.train_report import config_dict, write_outputs
@@ -56,8 +56,8 @@ TIMING_KEYS = ("render", "loss", "backward", "step", "densify", "project", "rast
                "raster_backward")
 CHECKPOINT_VERSION = 1
 #: Config fields that may change between a checkpoint and a resumed run.
-RESUMABLE_CHANGES = frozenset({"iterations", "eval_every", "checkpoint_every", "sheet_views", "fast_projection",
-                               "loss_pixels_only"})
+RESUMABLE_CHANGES = frozenset({"iterations", "eval_every", "eval_at_start", "checkpoint_every", "sheet_views",
+                               "fast_projection", "loss_pixels_only"})
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,10 @@ class SplatTrainConfig:
         opacity_reg, scale_reg: weights of ``mean(opacity)`` and ``mean(scale / scene_scale)`` added to the loss.
         filter: screen-space filter of the renderer (``"inria"`` | ``"mip"`` | ``"none"``).
         background: RGB behind the Gaussians in [0, 1].
-        eval_every: evaluate held-out and (up to ``train_eval_views``) training views every n steps (and at the end).
+        eval_every: evaluate held-out and (up to ``train_eval_views``) training views every n steps (and at the end);
+            0 = at the last step only.
+        eval_at_start: also evaluate the initial Gaussians (the curve's step 0). Evaluations read the scene and
+            draw no random numbers: neither setting changes the trained scene.
         checkpoint_every: write ``checkpoint.pt`` every n steps (and at the end).
         sheet_views: held-out views in the contact sheet.
         fast_projection: numba projection with its hand-written backward
@@ -131,6 +134,7 @@ class SplatTrainConfig:
     filter: str = "inria"
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     eval_every: int = 500
+    eval_at_start: bool = True
     train_eval_views: int = 8
     checkpoint_every: int = 500
     sheet_views: int = 4
@@ -144,10 +148,11 @@ class SplatTrainConfig:
         def bad(name: str, why: str) -> SplatError:
             return SplatError(f"SplatTrainConfig.{name} = {getattr(self, name)!r}: {why}")
 
-        for name in ("iterations", "max_gaussians", "refine_every", "eval_every", "checkpoint_every",
-                     "sh_increase_every"):
+        for name in ("iterations", "max_gaussians", "refine_every", "checkpoint_every", "sh_increase_every"):
             if int(getattr(self, name)) < 1:
                 raise bad(name, "must be >= 1")
+        if int(self.eval_every) < 0:
+            raise bad("eval_every", "must be >= 1, or 0 (at the last step only)")
         if not 0 <= self.sh_degree <= 3:
             raise bad("sh_degree", "must be in 0..3")
         if self.holdout_every < 0 or self.holdout_every == 1:
@@ -205,7 +210,8 @@ class SplatTrainResult:
     Attributes:
         gaussians: the trained scene (float32, detached).
         out_dir, ply_path: output folder and ``out_dir/scene.ply`` (None without ``out_dir``).
-        heldout_psnr, heldout_ssim: final masked metrics over the held-out views (nan if none held out).
+        heldout_psnr, heldout_ssim: final masked metrics over the held-out views (nan if none held out, or if a run
+            stopped by ``stop_at`` has evaluated nothing yet).
         history: one dict per evaluation: iteration, seconds (training time, evaluation excluded), cpu_seconds
             (the process's CPU time over the same steps, all threads), wall_seconds, n_gaussians, loss,
             train_psnr, train_ssim, heldout_psnr, heldout_ssim.
@@ -350,14 +356,17 @@ def _render(g: Gaussians, data: _Data, i: int, intr: FisheyeIntrinsics, cfg: Spl
 
 @torch.no_grad()
 def _evaluate(g: Gaussians, data: _Data, idx: Sequence[int], intr, cfg, deg) -> tuple[float, float]:
-    """Mean masked PSNR (dB) and SSIM over views ``idx`` (nan when empty)."""
+    """Mean masked PSNR (dB) and SSIM over views ``idx`` (nan when empty). The SSIM is the fused loss's
+    (:func:`photometric_loss_fused` with weight 1: :func:`masked_ssim`'s value, within float rounding, with the view's
+    kept target statistics), ~2.5x less blurring than :func:`masked_ssim` on 2 cores."""
     if not idx:
         return float("nan"), float("nan")
     ps, ss = [], []
     for i in idx:
         rgb = _render(g, data, i, intr, cfg, deg).rgb.clamp(0.0, 1.0)
         ps.append(masked_psnr(rgb, data.images[i], data.masks[i]))
-        ss.append(float(masked_ssim(rgb, data.images[i], data.masks[i])))
+        _, parts = photometric_loss_fused(rgb, data.images[i], data.masks[i], 1.0, target_stats=data.ssim_stats(i))
+        ss.append(float(parts["ssim"]))
     return float(np.mean(ps)), float(np.mean(ss))
 
 
@@ -500,7 +509,7 @@ def train_splat(
     t_wall0 = time.perf_counter()
     wall_offset = history[-1]["wall_seconds"] if history else 0.0
     end = cfg.iterations if stop_at is None else min(cfg.iterations, int(stop_at))
-    if start == 0 and not history:
+    if start == 0 and not history and cfg.eval_at_start:
         history.append(evaluate(0, float("nan")))
     pbar = None
     if progress and end > start:
@@ -552,7 +561,7 @@ def train_splat(
                 raise SplatError(f"train_splat: loss became {lv} at iteration {it} (view {data.names[i]!r}); "
                                  f"lower the learning rates")
             loss_sum, loss_n = loss_sum + lv, loss_n + 1
-            if it % cfg.eval_every == 0 or it == cfg.iterations:
+            if (cfg.eval_every and it % cfg.eval_every == 0) or it == cfg.iterations:
                 history.append(evaluate(it, loss_sum / max(loss_n, 1)))
                 loss_sum, loss_n = 0.0, 0
                 if pbar is not None:
@@ -570,7 +579,7 @@ def train_splat(
         m = json.loads((out / "metrics.json").read_text())
         return SplatTrainResult(g_final, out, out / "scene.ply", m["heldout_psnr"], m["heldout_ssim"],
                                 m["history"], m.get("timings", {}))
-    last = history[-1]
+    last = history[-1] if history else {"heldout_psnr": float("nan"), "heldout_ssim": float("nan")}  # stopped early
     result = SplatTrainResult(g_final, out, None, last["heldout_psnr"], last["heldout_ssim"], history, timings)
     if out is not None and end >= cfg.iterations:
         if start >= cfg.iterations:  # finished checkpoint without metrics.json: evaluate once more
