@@ -253,3 +253,24 @@ def test_trainer_fast_projection_matches_reference(rng):
     assert np.isfinite(la).all() and np.isfinite(lb).all()
     np.testing.assert_allclose(la, lb, rtol=1e-3)
     assert runs[0].timings["project_backward"] > 0 and runs[1].timings["project_backward"] == 0
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_gather_visible_kernel_equals_numpy(rng, dtype):
+    """The forward's visible rows, split into the six output groups in the scene's dtype: the numba pass gives the
+    same bytes as numpy's fancy index + ``astype`` (values that round up and down in float32, huge, tiny, signed
+    zeros; no visible row)."""
+    from umi_aug.splat.project import ProjectGaussians, _gather_visible_numpy
+
+    n = int(rng.integers(300, 900))
+    # magnitudes from float32 denormals to 1e30
+    out = rng.normal(size=(n, PK.PROJ_COLS)) * 10.0 ** rng.integers(-45, 30, size=(n, PK.PROJ_COLS))
+    out[::7, 3] = -0.0
+    out[::11, 5] = 1.0 + 2.0 ** -30  # rounds to 1.0 in float32
+    for ids in (np.flatnonzero(rng.random(n) < 0.7), np.arange(n), np.zeros(0, dtype=np.int64)):
+        want = _gather_visible_numpy(out, ids, dtype)
+        got = [np.empty(w.shape, dtype=dtype) for w in want]
+        PK.gather_visible_kernel(out, ids, *got)
+        assert len(got) == len(ProjectGaussians.COLUMNS)
+        for g, w in zip(got, want):
+            assert g.dtype == w.dtype and g.shape == w.shape and g.tobytes() == w.tobytes()

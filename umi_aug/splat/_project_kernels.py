@@ -505,3 +505,21 @@ def project_bwd_kernel(
             g_means[i, 0] = gmx
             g_means[i, 1] = gmy
             g_means[i, 2] = gmz
+
+
+@njit(parallel=True, cache=True)
+def gather_visible_kernel(out, ids, uv, conic, opacity, color, depth, cov2d):  # pragma: no cover - compiled
+    """Rows ``ids [V]`` of :func:`project_fwd_kernel`'s ``out [N, PROJ_COLS]`` (float64) into its six
+    differentiable outputs, each ``[V, ...]`` in the scene's dtype: ``uv [V, 2]``, ``conic [V, 3]``, ``opacity
+    [V]``, ``color [V, 3]``, ``depth [V]``, ``cov2d [V, 3]`` (float64 to float32 rounds to nearest, as numpy's
+    ``astype``: the same bits as ``out[ids][:, a:b].astype(dtype)``, one parallel pass instead of seven)."""
+    for k in prange(ids.shape[0]):
+        i = ids[k]
+        uv[k, 0] = out[i, 0]
+        uv[k, 1] = out[i, 1]
+        for c in range(3):
+            conic[k, c] = out[i, 2 + c]
+            color[k, c] = out[i, 6 + c]
+            cov2d[k, c] = out[i, 10 + c]
+        opacity[k] = out[i, 5]
+        depth[k] = out[i, 9]

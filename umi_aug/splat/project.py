@@ -243,6 +243,13 @@ def _np(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy())
 
 
+def _gather_visible_numpy(out: np.ndarray, ids: np.ndarray, dtype) -> list[np.ndarray]:
+    """:func:`umi_aug.splat._project_kernels.gather_visible_kernel` in numpy (what the forward did before it; the
+    reference of ``tests/splat/test_project_fast.py``): the six output column groups of rows ``ids``."""
+    vis = out[ids]
+    return [vis[:, a:b].astype(dtype) if b - a > 1 else vis[:, a].astype(dtype) for a, b in ProjectGaussians.COLUMNS]
+
+
 class ProjectGaussians(torch.autograd.Function):
     """:func:`project_gaussians` as numba kernels: ``forward(means, log_scales, quats_wxyz, logit_opacities, sh0,
     sh_rest, setup)`` returns ``(means2d [V, 2], conics [V, 3], opacities [V], colors [V, 3], depths [V],
@@ -269,11 +276,11 @@ class ProjectGaussians(torch.autograd.Function):
         ctx.setup, ctx.ids = setup, ids
         ids_t = torch.from_numpy(ids)
         ctx.mark_non_differentiable(ids_t)
-        vis = out[ids]
         np_dt = np.float64 if means.dtype == torch.float64 else np.float32
-        parts = [torch.from_numpy(vis[:, a:b].astype(np_dt) if b - a > 1 else vis[:, a].astype(np_dt))
-                 for a, b in ProjectGaussians.COLUMNS]  # each its own contiguous array, converted in one pass
-        return (*parts, ids_t)
+        parts = [np.empty((ids.size, b - a) if b - a > 1 else ids.size, dtype=np_dt)
+                 for a, b in ProjectGaussians.COLUMNS]  # each its own contiguous array
+        PK.gather_visible_kernel(out, ids, *parts)
+        return (*(torch.from_numpy(x) for x in parts), ids_t)
 
     @staticmethod
     def backward(ctx, *grads_out):
