@@ -50,6 +50,31 @@ def test_composite_rejects_bad_shapes(rng):
         composite_overlay(np.zeros((8, 8, 3), np.float32), np.zeros((8, 8, 3), np.uint8), a)
 
 
+def test_composite_equals_the_every_pixel_reference(rng):
+    """The band-only blend gives the same bytes as blending every pixel: feathered and hard masks, random alphas
+    outside [0, 1], all-0 and all-1 alphas, leading dimensions, extreme values; an alpha with NaN uses the
+    reference itself."""
+    from umi_aug.augment.overlay import _composite_overlay_reference
+
+    S = 48
+    mask = _blob_mask(rng, S)
+    noisy = rng.uniform(-0.5, 1.5, (S, S)).astype(np.float32)
+    with_nan = noisy.copy()
+    with_nan[3, 4] = np.nan
+    for alpha in (overlay_alpha(mask, 3.0), noisy, np.zeros((S, S), np.float32), np.ones((S, S), np.float32),
+                  overlay_alpha(mask, 0.0), overlay_alpha(mask, 2.0).astype(np.float64), with_nan):
+        for lead in ((), (3,), (2, 2)):
+            r = rng.integers(0, 256, lead + (S, S, 3)).astype(np.uint8)
+            o = rng.integers(0, 256, lead + (S, S, 3)).astype(np.uint8)
+            r.reshape(-1)[:7], o.reshape(-1)[:7] = 255, 0  # extremes
+            with np.errstate(invalid="ignore"):
+                want = _composite_overlay_reference(r, o, alpha)
+                got = composite_overlay(r, o, alpha)
+            assert got.dtype == np.uint8 and got.shape == want.shape and got.tobytes() == want.tobytes()
+    with pytest.raises(AugmentError, match="composite_overlay"):
+        composite_overlay(np.zeros((S, S, 3), np.uint8), np.zeros((S, S - 1, 3), np.uint8), alpha)
+
+
 def test_estimated_mask_recovers_a_static_region(rng):
     s, n = 48, 12
     mask = _blob_mask(rng, s)

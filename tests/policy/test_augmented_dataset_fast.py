@@ -47,25 +47,6 @@ def _same(a, b):
 
 
 # ------------------------------------------------------------------------------------------- pieces vs reference
-def test_composite_band_equals_composite_overlay(rng):
-    from umi_aug.augment.overlay import composite_overlay, overlay_alpha
-    from umi_aug.errors import AugmentError
-    from umi_aug.policy.augmented_paths import composite_band
-
-    S = 48
-    mask = np.zeros((S, S), bool)
-    mask[30:, 10:40] = True
-    for alpha in (overlay_alpha(mask, 3.0), rng.uniform(-0.5, 1.5, (S, S)).astype(np.float32),
-                  np.zeros((S, S), np.float32), np.ones((S, S), np.float32), overlay_alpha(mask, 0.0)):
-        for lead in ((), (3,), (2, 2)):
-            r = rng.integers(0, 256, lead + (S, S, 3)).astype(np.uint8)
-            o = rng.integers(0, 256, lead + (S, S, 3)).astype(np.uint8)
-            r.reshape(-1)[:7], o.reshape(-1)[:7] = 255, 0  # extremes
-            np.testing.assert_array_equal(composite_band(r, o, alpha), composite_overlay(r, o, alpha))
-    with pytest.raises(AugmentError, match="composite_overlay"):
-        composite_band(np.zeros((S, S, 3), np.uint8), np.zeros((S, S - 1, 3), np.uint8), alpha)
-
-
 def test_read_rows_equals_original_frames(aug_assets, rng):
     from umi_aug.policy.augmented_paths import read_rows
 

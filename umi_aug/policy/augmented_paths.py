@@ -9,8 +9,8 @@ reference kept (the dataset's ``fast_paths=()``) and compared in ``tests/policy/
 * ``"frames"`` — :func:`sample_frames`: the same pixels as :func:`umi_aug.augment.render_episode_frames` for the
   1–2 frames of a sample, but each original frame it needs (replayed frames and overlay sources) is decoded once,
   alone (the reference decodes every frame between the lowest and the highest index asked for, or the demo's whole
-  pre-contact range for the overlay cache), and the overlay is blended only inside the mask's feathered band
-  (:func:`composite_band`; exactly :func:`umi_aug.augment.overlay.composite_overlay`).
+  pre-contact range for the overlay cache); the overlay is :func:`umi_aug.augment.overlay.composite_overlay`, which
+  blends only inside the mask's feathered band.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from umi_aug.errors import AugmentError
 from umi_aug.io_utils import atomic_path
 
 __all__ = ["FAST_PATHS", "PlanDiskCache", "plan_code_fingerprint", "plan_cache_key", "read_rows",
-           "composite_band", "sample_frames"]
+           "sample_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -162,40 +162,11 @@ def read_rows(handle: Any, demo_index: int, rows: np.ndarray) -> np.ndarray:
     return frames[inv.reshape(-1)]
 
 
-@lru_cache(maxsize=8)
-def _band(alpha_bytes: bytes, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    a = np.frombuffer(alpha_bytes, np.float32).reshape(shape)
-    flat = a.reshape(-1)
-    full = np.flatnonzero(flat >= 1.0)
-    band = np.flatnonzero((flat > 0.0) & (flat < 1.0))
-    return full, band, flat[band][:, None]
-
-
-def composite_band(rendered: np.ndarray, original: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """:func:`umi_aug.augment.overlay.composite_overlay` (same bytes) computed only where ``0 < alpha < 1``:
-    ``original`` where alpha ≥ 1, ``rendered`` where alpha ≤ 0 (NaN alpha: neither, so the reference is used)."""
-    from umi_aug.augment.overlay import composite_overlay  # lazy, start-up: cv2
-
-    a32 = np.ascontiguousarray(alpha, dtype=np.float32)
-    r, o = np.asarray(rendered), np.asarray(original)
-    if (r.shape != o.shape or r.dtype != np.uint8 or o.dtype != np.uint8 or r.ndim < 3
-            or r.shape[-3:-1] != a32.shape or not np.isfinite(a32).all()):
-        return composite_overlay(rendered, original, alpha)  # its checks and error message
-    full, band, ab = _band(a32.tobytes(), a32.shape)
-    lead = r.shape[:-3]
-    P = a32.size
-    rf, of = r.reshape(-1, P, 3), o.reshape(-1, P, 3)
-    out = rf.copy()
-    out[:, full] = of[:, full]
-    ob, rb = of[:, band].astype(np.float32), rf[:, band].astype(np.float32)
-    out[:, band] = np.rint(ab * ob + (1.0 - ab) * rb).astype(np.uint8)
-    return out.reshape(lead + r.shape[-3:])
-
-
 def sample_frames(handle: Any, planned: Any, frame_indices: np.ndarray, timings: dict | None = None) -> np.ndarray:
     """:func:`umi_aug.augment.render_episode_frames` ``(handle, planned, frame_indices)`` (same pixels) for a
-    sample's few frames: originals decoded alone (:func:`read_rows`), band-only overlay (:func:`composite_band`).
+    sample's few frames: originals decoded alone (:func:`read_rows`).
     Obstacle episodes go to the reference. ``timings`` (seconds) accumulates ``decode``, ``render``, ``overlay``."""
+    from umi_aug.augment.overlay import composite_overlay  # lazy, start-up: cv2
     from umi_aug.augment.render import overlay_sources, render_episode_frames, render_view  # lazy, start-up: cv2
 
     t = timings if timings is not None else {}
@@ -224,7 +195,7 @@ def sample_frames(handle: Any, planned: Any, frame_indices: np.ndarray, timings:
         rendered = np.stack([render_view(handle, ep.T_world_cam[k]) for k in idx[new]])
         t2 = time.perf_counter()
         alpha = handle.overlay_alpha
-        out[new] = composite_band(rendered, originals[: len(src_new)], alpha)
+        out[new] = composite_overlay(rendered, originals[: len(src_new)], alpha)
         t["render"] = t.get("render", 0.0) + t2 - t1
         t["overlay"] = t.get("overlay", 0.0) + time.perf_counter() - t2
     out[~new] = originals[len(src_new):]
