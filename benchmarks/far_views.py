@@ -66,9 +66,11 @@ DEFAULTS_BEFORE = "one demo, before (every 2nd frame, 600 full-size steps)"
 POSE_PAIRS = "one demo, pose pairs (the default before session 38)"
 #: both demos pooled with the triangulation also matching pose pairs (the default before session 38)
 POOLED_POSE_PAIRS = "two demos pooled, pose pairs (the default before session 38)"
+#: a shorter 3DGS run: 500 steps, the MCMC growth from step 50 (the default: 600 steps, growth from step 100)
+SHORT_500 = "one demo, 500 3DGS steps, growth from step 50 (600, 100)"
 SETTINGS = ("one demo, no shell", "one demo (default)", DEFAULTS_BEFORE,
             "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos", SCHEDULE_BEFORE, POSE_PAIRS,
-            POOLED_POSE_PAIRS)
+            POOLED_POSE_PAIRS, SHORT_500)
 
 
 def cone_ring_poses(T_ref: np.ndarray, radius: float, theta: float, n: int) -> np.ndarray:
@@ -136,6 +138,8 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
         splat = dataclasses.replace(splat, iterations=600, coarse_downscale=1, extra={})
     if setting == SCHEDULE_BEFORE:
         splat = dataclasses.replace(splat, iterations=iterations or 1200, extra={})
+    if setting == SHORT_500:
+        splat = dataclasses.replace(splat, iterations=500, extra={**splat.extra, "refine_start": 50})
     cfg = dataclasses.replace(base, mode="freespace", splat=splat)
     pooled = setting in ("two demos pooled", POOLED_POSE_PAIRS)
     inp = DatasetInput(episodes=(0, 1) if pooled else (0,), scene_group=2 if pooled else 1,

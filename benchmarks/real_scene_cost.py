@@ -154,9 +154,13 @@ def build_scene(dataset: Path, work: Path, overrides: dict[str, object], seed: i
             "splat_train_s": splat["train_seconds"], "splat_step_profile": profile}
 
 
-def seed_paired(rows: list[dict], reference: str) -> list[dict]:
-    """Per setting, over the seeds where both it and ``reference`` built: mean PSNR / scene seconds and the
-    seed-paired PSNR differences ``setting - reference`` (their mean, min and max)."""
+def _scene_seconds(row: dict) -> float:
+    return row["stages_s"].get("scene", 0.0)
+
+
+def seed_paired(rows: list[dict], reference: str, seconds=_scene_seconds) -> list[dict]:
+    """Per setting, over the seeds where both it and ``reference`` built: mean PSNR / ``seconds(row)`` (default: the
+    triangulation's) and the seed-paired PSNR differences ``setting - reference`` (their mean, min and max)."""
     ok = {(r["setting"], r["seed"]): r for r in rows if "failed" not in r}
     out = []
     for name in dict.fromkeys(r["setting"] for r in rows):
@@ -166,20 +170,20 @@ def seed_paired(rows: list[dict], reference: str) -> list[dict]:
         diff = [ok[(name, sd)]["psnr"] - ok[(reference, sd)]["psnr"] for sd in seeds]
         out.append({"setting": name, "seeds": seeds,
                     "psnr_mean": sum(ok[(name, sd)]["psnr"] for sd in seeds) / len(seeds),
-                    "scene_s_mean": sum(ok[(name, sd)]["stages_s"].get("scene", 0.0) for sd in seeds) / len(seeds),
+                    "seconds_mean": sum(seconds(ok[(name, sd)]) for sd in seeds) / len(seeds),
                     "diff_mean": sum(diff) / len(diff), "diff_min": min(diff), "diff_max": max(diff)})
     return out
 
 
-def seed_paired_table(rows: list[dict], reference: str):
-    """:func:`seed_paired` as a table."""
+def seed_paired_table(rows: list[dict], reference: str, seconds=_scene_seconds, seconds_name: str = "scene s"):
+    """:func:`seed_paired` as a table (``seconds_name``: the column of ``seconds``' mean)."""
     from rich.table import Table
 
     t = Table(title=f"held-out PSNR against {reference!r}, paired by seed")
-    for c in ("setting", "seeds", "scene s (mean)", "PSNR dB (mean)", "- reference dB (mean)", "(min / max)"):
+    for c in ("setting", "seeds", f"{seconds_name} (mean)", "PSNR dB (mean)", "- reference dB (mean)", "(min / max)"):
         t.add_column(c, justify="right")
-    for p in seed_paired(rows, reference):
-        t.add_row(p["setting"], " ".join(map(str, p["seeds"])), f"{p['scene_s_mean']:.1f}", f"{p['psnr_mean']:.2f}",
+    for p in seed_paired(rows, reference, seconds):
+        t.add_row(p["setting"], " ".join(map(str, p["seeds"])), f"{p['seconds_mean']:.1f}", f"{p['psnr_mean']:.2f}",
                   f"{p['diff_mean']:+.2f}", f"{p['diff_min']:+.2f} / {p['diff_max']:+.2f}")
     return t
 
