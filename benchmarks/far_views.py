@@ -35,6 +35,10 @@ Settings (``--settings``):
   ``docs/real_scale.md`` 1i).
 * ``two demos pooled, pose pairs (...)``: the pooled scene as before session 38, its triangulation also matching
   every two frames within 0.25 m and 45° (the loop grid alone also spans both demos).
+* ``one demo, 500 3DGS steps, growth from step 50 (600, 100)``: a shorter 3DGS run (``docs/real_scale.md`` 1j).
+* ``one demo, matches verified by the known poses (...)``: the known-pose triangulation keeps the matches that
+  agree with the known poses instead of COLMAP's two-view RANSAC (``DatasetInput.sfm_known_pose_verification``;
+  ``docs/real_scale.md`` 1j).
 * ``scan + demos``: the session path (``umi-aug augment <session>``): the mapping scan's frames and both demos
   (the upper bound a short scan gives).
 
@@ -68,9 +72,11 @@ POSE_PAIRS = "one demo, pose pairs (the default before session 38)"
 POOLED_POSE_PAIRS = "two demos pooled, pose pairs (the default before session 38)"
 #: a shorter 3DGS run: 500 steps, the MCMC growth from step 50 (the default: 600 steps, growth from step 100)
 SHORT_500 = "one demo, 500 3DGS steps, growth from step 50 (600, 100)"
+#: the triangulation's matches verified by the known poses instead of COLMAP's two-view RANSAC
+KNOWN_POSE_VERIFICATION = "one demo, matches verified by the known poses (COLMAP's RANSAC)"
 SETTINGS = ("one demo, no shell", "one demo (default)", DEFAULTS_BEFORE,
             "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos", SCHEDULE_BEFORE, POSE_PAIRS,
-            POOLED_POSE_PAIRS, SHORT_500)
+            POOLED_POSE_PAIRS, SHORT_500, KNOWN_POSE_VERIFICATION)
 
 
 def cone_ring_poses(T_ref: np.ndarray, radius: float, theta: float, n: int) -> np.ndarray:
@@ -145,7 +151,8 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
     inp = DatasetInput(episodes=(0, 1) if pooled else (0,), scene_group=2 if pooled else 1,
                        background_points=0 if "no shell" in setting else DatasetInput.background_points,
                        sfm_stride=2 if (before or "2nd" in setting) else DatasetInput.sfm_stride,
-                       sfm_pose_pairs=before or setting in (POSE_PAIRS, POOLED_POSE_PAIRS))
+                       sfm_pose_pairs=before or setting in (POSE_PAIRS, POOLED_POSE_PAIRS),
+                       sfm_known_pose_verification=setting == KNOWN_POSE_VERIFICATION)
     dataset = jittered_dataset(session, work.parent / "dataset_jittered.zarr.zip")
     assets = prepare_dataset(dataset, work, cfg, inp, progress=False)
     return assets.for_demo(0), time.perf_counter() - t0

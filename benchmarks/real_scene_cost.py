@@ -64,6 +64,7 @@ SETTINGS: dict[str, dict[str, object]] = {
     "pose pairs within 0.12 m, 30 deg (none)": {"inp.sfm_pose_pairs": True, "sfm.pose_pair_max_dist_m": 0.12,
                                                 "sfm.pose_pair_max_angle_deg": 30.0},
     "pose pairs within 0.25 m, 45 deg (none; the default before session 38)": {"inp.sfm_pose_pairs": True},
+    "matches verified by the known poses (COLMAP's two-view RANSAC)": {"inp.sfm_known_pose_verification": True},
     "3DGS 300 steps (600)": {"splat.iterations": 300},
     "3DGS full size (first half at 1/2)": {"splat.coarse_downscale": 1},
     "3DGS coarse for 3/4 of the steps": {"splat.extra": {"coarse_fraction": 0.75}},

@@ -323,3 +323,30 @@ def test_triangulation_pose_pairs_only_when_asked(tmp_path, monkeypatch, good, g
                                            **({} if pose_pairs is None else {"sfm_pose_pairs": pose_pairs})),
                            progress=False)
     assert seen[0] == ("known_poses", expected_m, 45.0)
+
+
+@pytest.mark.parametrize("flag, expected", [(None, False), (True, True), (False, False)])
+def test_triangulation_verifies_matches_by_the_known_poses_when_asked(tmp_path, monkeypatch, good, flag,
+                                                                        expected):
+    """``DatasetInput.sfm_known_pose_verification`` (default False: COLMAP's two-view RANSAC, the caller's
+    ``SfmConfig`` default) reaches the triangulation's ``SfmConfig`` when asked for."""
+    import umi_aug.augment.dataset_source as ds
+    from umi_aug.augment.config import AugmentConfig
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_run_sfm(paths, names, intr, work, cfg, **kw):
+        seen.append((cfg.mode, cfg.known_pose_verification))
+        raise Stop
+
+    monkeypatch.setattr(ds, "run_sfm", fake_run_sfm)
+    path = _write(tmp_path / "d.zarr.zip", good[:2])
+    with pytest.raises(Stop):
+        ds.prepare_dataset(path, tmp_path / "work", AugmentConfig(image_size=S),
+                           ds.DatasetInput(background_points=0,
+                                           **({} if flag is None else {"sfm_known_pose_verification": flag})),
+                           progress=False)
+    assert seen[0] == ("known_poses", expected)

@@ -65,3 +65,83 @@ def test_sfm_registering_too_few_frames_raises(tmp_path):
         run_sfm(paths, [f"s/{p.name}" for p in paths], INTR, tmp_path / "w", SfmConfig(max_num_features=500))
     with pytest.raises(ReconError, match="known_poses' needs T_world_cam"):
         run_sfm(paths, [f"s/{p.name}" for p in paths], INTR, tmp_path / "w2", SfmConfig(mode="known_poses"))
+
+
+def _sampson_sq_loop(x1, x2, E):
+    """Squared Sampson distance, one correspondence at a time (the obviously correct reference)."""
+    out = []
+    for a, b in zip(x1, x2):
+        p, q = np.array([a[0], a[1], 1.0]), np.array([b[0], b[1], 1.0])
+        Ep, Etq = E @ p, E.T @ q
+        out.append((q @ E @ p) ** 2 / (Ep[0] ** 2 + Ep[1] ** 2 + Etq[0] ** 2 + Etq[1] ** 2))
+    return np.array(out)
+
+
+def _two_views(rng, angle):
+    """Points in front of camera 1, camera 2 = ``(R about a random axis by angle, t)`` from camera 1."""
+    from umi_aug.geometry import so3_exp
+
+    X = rng.uniform([-1, -1, 1.0], [1, 1, 4.0], (200, 3))
+    axis = rng.normal(size=3) * (0.05 if angle > 3.0 else 1.0) + np.array([0.0, 0.0, 1.0])  # near pi: about z
+    R = so3_exp(axis / np.linalg.norm(axis) * angle)
+    t = rng.normal(size=3) * 0.2
+    X2 = X @ R.T + t
+    keep = X2[:, 2] > 0.2
+    X, X2 = X[keep], X2[keep]
+    tn = t / np.linalg.norm(t)
+    E = np.array([[0, -tn[2], tn[1]], [tn[2], 0, -tn[0]], [-tn[1], tn[0], 0]]) @ R
+    return X[:, :2] / X[:, 2:], X2[:, :2] / X2[:, 2:], E, R, t
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.3, np.pi - 1e-6])
+def test_epipolar_sampson_equals_the_per_point_reference(rng, angle):
+    from umi_aug.recon.sfm import epipolar_sampson_sq
+
+    x1, x2, E, _, _ = _two_views(rng, angle)
+    exact = epipolar_sampson_sq(x1, x2, E)
+    assert np.all(np.isfinite(exact)) and exact.max() < 1e-20  # the true correspondences lie on their lines
+    noisy = x2 + rng.normal(size=x2.shape) * 0.01
+    got, want = epipolar_sampson_sq(x1, noisy, E), _sampson_sq_loop(x1, noisy, E)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-30)
+    assert np.median(got) > 1e-7  # 0.01 of noise is seen
+
+
+def test_known_pose_verification_keeps_the_matches_the_poses_explain(tmp_path, rng):
+    """Raw matches in a COLMAP database (true ones and shuffled ones) between three frames of known poses: the
+    verification keeps every true match and drops nearly every shuffled one, writes CALIBRATED geometries with the
+    poses' relative pose, and leaves a pair without baseline unverified. (A shuffled match survives where it
+    happens to fall within 4 px of its epipolar line, as it would in COLMAP's RANSAC: ~1 in 6 at 320x240.)"""
+    pc = pytest.importorskip("pycolmap")
+    from umi_aug.geometry import so3_exp
+    from umi_aug.recon.sfm import verify_with_known_poses
+
+    cam = pc.Camera(model="OPENCV_FISHEYE", width=INTR.width, height=INTR.height, params=colmap_camera_params(INTR))
+    T = np.tile(np.eye(4), (3, 1, 1))
+    T[1, :3, :3], T[1, :3, 3] = so3_exp(np.array([0.0, 0.2, 0.05])), [0.15, 0.02, 0.01]
+    T[2, :3, :3], T[2, :3, 3] = so3_exp(np.array([0.01, 0.0, 0.0])), [0.0, 0.0, 0.0005]  # < 1 mm from frame 0
+    X = rng.uniform([-1, -1, 1.5], [1, 1, 3.0], (300, 3))  # world = camera 0's frame
+    names = ["s/0.png", "s/1.png", "s/2.png"]
+    db = pc.Database.open(str(tmp_path / "db.db"))
+    cid = db.write_camera(cam)
+    ids = [db.write_image(pc.Image(name=n, camera_id=cid)) for n in names]
+    for iid, Tk in zip(ids, T):
+        Xc = (X - Tk[:3, 3]) @ Tk[:3, :3]  # camera frame
+        db.write_keypoints(iid, np.asarray(cam.img_from_cam(Xc), np.float32))
+    n_true = len(X)
+    true = np.stack([np.arange(n_true), np.arange(n_true)], 1).astype(np.uint32)
+    wrong = np.stack([np.arange(0, n_true, 3), rng.permutation(n_true)[: len(range(0, n_true, 3))]], 1)
+    wrong = wrong[wrong[:, 0] != wrong[:, 1]].astype(np.uint32)
+    for a, b in ((0, 1), (0, 2)):
+        db.write_matches(ids[a], ids[b], np.concatenate([true, wrong]))
+    db.close()
+    written = verify_with_known_poses(pc, tmp_path / "db.db", names, T, max_error_px=4.0, min_inliers=15)
+    assert written == 1
+    db = pc.Database.open(str(tmp_path / "db.db"))
+    g = db.read_two_view_geometry(ids[0], ids[1])
+    assert g.config == pc.TwoViewGeometryConfiguration.CALIBRATED
+    inl = {tuple(m) for m in np.asarray(g.inlier_matches).tolist()}
+    assert all((i, i) in inl for i in range(n_true))
+    assert sum(tuple(m) in inl for m in wrong.tolist()) < 0.3 * len(wrong)
+    np.testing.assert_allclose(g.cam2_from_cam1.matrix(), (np.linalg.inv(T[1]) @ T[0])[:3, :4], atol=1e-12)
+    assert not db.exists_two_view_geometry(ids[0], ids[2])
+    db.close()

@@ -48,3 +48,10 @@ def test_known_pose_sfm_on_real_frames_is_deterministic(tmp_path):
         assert r.points.shape == runs[0].points.shape
         assert r.points.tobytes() == runs[0].points.tobytes()
         assert r.errors_px.tobytes() == runs[0].errors_px.tobytes()
+    # the matches verified by the known poses (a dataset scene's default): the same bytes twice, and a cloud
+    by_poses = [run_sfm(paths, names, intr, tmp_path / f"v{k}", SfmConfig(mode="known_poses", num_threads=2,
+                                                                           known_pose_verification=True),
+                        T_world_cam=T[idx], masks=feature_mask(intr)) for k in range(2)]
+    assert len(by_poses[0].points) > 100
+    assert by_poses[1].points.tobytes() == by_poses[0].points.tobytes()
+    assert by_poses[1].errors_px.tobytes() == by_poses[0].errors_px.tobytes()

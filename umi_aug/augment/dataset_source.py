@@ -108,6 +108,11 @@ class DatasetInput:
             416 pairs and a third of the triangulation time, at the same held-out PSNR without them (+0.03 dB over 3
             seeds); on the synthetic session they cost 0.4-0.75 dB at every cone start for one demo's scene and
             0.03-0.31 dB for two demos pooled (-0.11 dB held-out there; docs/real_scale.md 1i).
+        sfm_known_pose_verification: the triangulation keeps the matches that agree with the two frames' known poses
+            (``SfmConfig.known_pose_verification``) instead of COLMAP's two-view RANSAC. Off by default: on the real
+            cup episode it gives the same held-out PSNR over 3 seeds (+0.04 dB; 1380 points instead of 1444) with
+            the matching and triangulation in ~0.6-0.8x the time, but on the synthetic session (one seed) its scene
+            renders the cone starts 0.4-0.9 dB worse (docs/real_scale.md 1j).
         view_stride: every n-th pre-splice frame is a 3DGS view.
         background_points: Gaussians on the far-background shell (0 = none).
         background_radius: shell radius in multiples of the cameras' spread (≥ 3).
@@ -122,6 +127,7 @@ class DatasetInput:
     sfm_stride: int = 4
     sfm_upscale: int = 2
     sfm_pose_pairs: bool = False
+    sfm_known_pose_verification: bool = False
     view_stride: int = 1
     background_points: int = 4000
     background_radius: float = 8.0
@@ -447,9 +453,11 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
                  fps: dict[int, float], cfg: AugmentConfig, inp: DatasetInput) -> StageResult:
     """Known-pose triangulation + cloud + SDF + contacts of one group (outputs as the session reconstruction's)."""
     # known poses always (the TCP poses are the SLAM's); the same key whatever sfm.mode the caller left
-    pose_pairs = {} if inp.sfm_pose_pairs else {"pose_pair_max_dist_m": 0.0}
+    sfm_fields: dict = {} if inp.sfm_pose_pairs else {"pose_pair_max_dist_m": 0.0}
+    if inp.sfm_known_pose_verification:
+        sfm_fields["known_pose_verification"] = True
     rc = dataclasses.replace(cfg.recon, cone_half_angle_deg=cfg.cone_half_angle_deg,
-                             sfm=dataclasses.replace(cfg.recon.sfm, mode="known_poses", **pose_pairs))
+                             sfm=dataclasses.replace(cfg.recon.sfm, mode="known_poses", **sfm_fields))
     up = max(1, int(inp.sfm_upscale))
     intr = _policy_intrinsics(cfg.image_size * up)
 
