@@ -79,7 +79,7 @@ def _sampson_sq_loop(x1, x2, E):
 
 def _two_views(rng, angle):
     """Points in front of camera 1, camera 2 = ``(R about a random axis by angle, t)`` from camera 1."""
-    from umi_aug.geometry import so3_exp
+    from umi_aug.geometry import hat, so3_exp
 
     X = rng.uniform([-1, -1, 1.0], [1, 1, 4.0], (200, 3))
     axis = rng.normal(size=3) * (0.05 if angle > 3.0 else 1.0) + np.array([0.0, 0.0, 1.0])  # near pi: about z
@@ -88,8 +88,7 @@ def _two_views(rng, angle):
     X2 = X @ R.T + t
     keep = X2[:, 2] > 0.2
     X, X2 = X[keep], X2[keep]
-    tn = t / np.linalg.norm(t)
-    E = np.array([[0, -tn[2], tn[1]], [tn[2], 0, -tn[0]], [-tn[1], tn[0], 0]]) @ R
+    E = hat(t / np.linalg.norm(t)) @ R
     return X[:, :2] / X[:, 2:], X2[:, :2] / X2[:, 2:], E, R, t
 
 
@@ -145,3 +144,8 @@ def test_known_pose_verification_keeps_the_matches_the_poses_explain(tmp_path, r
     np.testing.assert_allclose(g.cam2_from_cam1.matrix(), (np.linalg.inv(T[1]) @ T[0])[:3, :4], atol=1e-12)
     assert not db.exists_two_view_geometry(ids[0], ids[2])
     db.close()
+    db = pc.Database.open(str(tmp_path / "db.db"))
+    db.clear_two_view_geometries()
+    db.close()
+    untrusted = np.array([True, False, True])  # frame 1's pose not trusted: its pair keeps no geometry
+    assert verify_with_known_poses(pc, tmp_path / "db.db", names, T, 4.0, 15, pose_valid=untrusted) == 0

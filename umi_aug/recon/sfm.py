@@ -32,6 +32,7 @@ import numpy as np
 from umi_aug.camera.intrinsics import FisheyeIntrinsics
 from umi_aug.camera.masks import predefined_mask
 from umi_aug.errors import ReconError
+from umi_aug.geometry import hat
 from umi_aug.recon import constants as C
 from umi_aug.recon.colmap_blocks import extract_in_blocks
 from umi_aug.recon.session_io import check_image_sizes
@@ -262,7 +263,7 @@ def _stage_images(work: Path, paths: Sequence[Path], names: Sequence[str], masks
 
 def _extract_and_match(pc, work: Path, names: list[str], intr: FisheyeIntrinsics, cfg: SfmConfig,
                        pairs: np.ndarray, timings: dict[str, float],
-                       T_world_cam: np.ndarray | None = None) -> Path:
+                       T_world_cam: np.ndarray | None = None, pose_valid: np.ndarray | None = None) -> Path:
     db = work / "database.db"
     reader = pc.ImageReaderOptions()
     reader.camera_model = "OPENCV_FISHEYE"
@@ -294,9 +295,15 @@ def _extract_and_match(pc, work: Path, names: list[str], intr: FisheyeIntrinsics
     pc.match_image_pairs(db, matching_options=mopt, pairing_options=popt, verification_options=vopt,
                          device=pc.Device.cpu)
     if by_poses:
-        verify_with_known_poses(pc, db, names, T_world_cam, vopt.ransac.max_error, vopt.min_num_inliers)
+        verify_with_known_poses(pc, db, names, T_world_cam, vopt.ransac.max_error, vopt.min_num_inliers,
+                                pose_valid=pose_valid)
     timings["match"] = time.perf_counter() - t
     return db
+
+
+def _open_database(pc, db_path: Path):
+    """The COLMAP database at ``db_path``, opened (``Database.open`` where pycolmap has it)."""
+    return pc.Database.open(str(db_path)) if hasattr(pc.Database, "open") else pc.Database(str(db_path))
 
 
 def epipolar_sampson_sq(x1: np.ndarray, x2: np.ndarray, E: np.ndarray) -> np.ndarray:
@@ -313,12 +320,14 @@ def epipolar_sampson_sq(x1: np.ndarray, x2: np.ndarray, E: np.ndarray) -> np.nda
 
 
 def verify_with_known_poses(pc, db_path: Path, names: list[str], T_world_cam: np.ndarray, max_error_px: float,
-                            min_inliers: int, min_baseline_m: float = 1e-3) -> int:
+                            min_inliers: int, min_baseline_m: float = 1e-3,
+                            pose_valid: np.ndarray | None = None) -> int:
     """Geometric verification of a database's raw matches by the known poses (``SfmConfig.known_pose_verification``):
     each pair's two-view geometry becomes the essential matrix of its two poses (``cam2_from_cam1``, CALIBRATED) and
     the matches within ``max_error_px`` of it (Sampson, on the normalised plane: ``max_error_px`` / the camera's
-    mean focal length, COLMAP's threshold). Returns the number of pairs written."""
-    db = pc.Database.open(str(db_path)) if hasattr(pc.Database, "open") else pc.Database(str(db_path))
+    mean focal length, COLMAP's threshold). A pair with a frame whose pose is not trusted (``pose_valid`` False:
+    the triangulation leaves that frame out) keeps no geometry. Returns the number of pairs written."""
+    db = _open_database(pc, db_path)
     try:
         images = {im.image_id: im for im in db.read_all_images()}
         index = {nm: i for i, nm in enumerate(names)}
@@ -338,14 +347,16 @@ def verify_with_known_poses(pc, db_path: Path, names: list[str], T_world_cam: np
             m = np.asarray(m, dtype=np.uint32).reshape(-1, 2)
             if len(m) < min_inliers:
                 continue
-            T1 = T_world_cam[index[images[id1].name]]
-            T2 = T_world_cam[index[images[id2].name]]
+            i1, i2 = index[images[id1].name], index[images[id2].name]
+            if pose_valid is not None and not (pose_valid[i1] and pose_valid[i2]):
+                continue
+            T1, T2 = T_world_cam[i1], T_world_cam[i2]
             T21 = np.linalg.inv(T2) @ T1  # cam2_from_cam1
             R, t = T21[:3, :3], T21[:3, 3]
             if np.linalg.norm(t) < min_baseline_m:
                 continue
             tn = t / np.linalg.norm(t)
-            E = np.array([[0.0, -tn[2], tn[1]], [tn[2], 0.0, -tn[0]], [-tn[1], tn[0], 0.0]]) @ R
+            E = hat(tn) @ R
             thr = max_error_px / cams[images[id1].camera_id].mean_focal_length()
             keep = epipolar_sampson_sq(xy(id1)[m[:, 0]], xy(id2)[m[:, 1]], E) <= thr * thr
             if int(keep.sum()) < min_inliers:
@@ -379,7 +390,7 @@ def _mapping_options(pc, cfg: SfmConfig):
 
 def _known_pose_reconstruction(pc, db_path: Path, intr: FisheyeIntrinsics, names: list[str],
                                T_world_cam: np.ndarray):
-    db = pc.Database.open(str(db_path)) if hasattr(pc.Database, "open") else pc.Database(str(db_path))
+    db = _open_database(pc, db_path)
     try:
         db_images = {im.name: im for im in db.read_all_images()}
         cams = db.read_all_cameras()
@@ -518,7 +529,7 @@ def run_sfm(image_paths: Sequence[str | os.PathLike], names: Sequence[str], intr
                                                             cfg.pose_pair_max_angle_deg)]), axis=0)
     timings: dict[str, float] = {}
     db = _extract_and_match(pc, work, names, intr, cfg, pairs, timings,
-                            T_world_cam if cfg.mode == "known_poses" else None)
+                            T_world_cam if cfg.mode == "known_poses" else None, pose_valid)
     opt = _mapping_options(pc, cfg)
     t = time.perf_counter()
     if cfg.mode == "full":
