@@ -119,14 +119,14 @@ def test_second_run_on_a_locked_output_fails_at_once_naming_the_pid(session, tmp
     before = snapshot(session, out)
     holder = _hold_lock(out) if which == "output" else _hold_lock(work, inside=True)
     try:
-        t0 = time.perf_counter()
+        # at once: a run that waited for the lock would get it only when the holder exits (after 60 s) and then
+        # reach the stages, which raise ``Reached``, not this error
         with pytest.raises(AugmentError) as e:
             stop_before_stages.export(session, out, small_cfg(), work_dir=work, progress=False)
         path, lock = (out, f"{out}.lock") if which == "output" else (work, f"{work}/.umi_aug.lock")
         assert str(e.value) == (f"{path}: the {which} is in use by another umi-aug run (PID {holder.pid}, lock "
                                 f"{lock}); wait for it to finish, stop it (kill {holder.pid}), or choose "
                                 f"another path")
-        assert time.perf_counter() - t0 < 30  # at once, not after the stages (generous: a loaded machine)
     finally:
         holder.kill()
         holder.wait()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -147,10 +146,8 @@ def test_obstacle_blocking_every_path_fails_clearly_without_hanging():
     res = solve(pb, x, 0)
     assert all(s in (TrajStatus.PLANNER_FAILED, TrajStatus.INFEASIBLE_START) for s in res.status)
     assert TrajStatus.PLANNER_FAILED in res.status
-    t0 = time.perf_counter()
-    with pytest.raises(TrajError, match="planner_failed"):
+    with pytest.raises(TrajError, match="planner_failed"):  # after its 2 rounds (a hang meets pytest's timeout)
         generate(pb, 2, seed=0, half_angle=np.radians(10), radius=RADIUS, max_rounds=2)
-    assert time.perf_counter() - t0 < 60.0
 
 
 def test_nan_sdf_never_passes():
