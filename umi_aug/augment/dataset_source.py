@@ -52,7 +52,7 @@ from umi_aug.augment.stages import contact_stage, gripper_mask_stage, init_only_
 from umi_aug.camera.calib_io import gopro_intrinsics_2_7k
 from umi_aug.data import ReplayBuffer, make_umi_episode
 from umi_aug.data.fingerprint import content_fingerprint
-from umi_aug.data.rows import read_rows
+from umi_aug.data.rows import read_rows, shared_decoded_chunks
 from umi_aug.data.validate import (FROZEN_ANGLE_RAD, FROZEN_MIN_STEPS, FROZEN_STEP_M, first_frozen_step,
                                    gripper_width_problem)
 from umi_aug.errors import AugmentError, UmiAugError
@@ -63,7 +63,7 @@ from umi_aug.recon import constants as RC
 from umi_aug.recon.cloud import SceneCloud, clean_cloud, inside_camera_body, read_ply, write_ply
 from umi_aug.recon.contact import detect_contact
 from umi_aug.recon.pipeline import first_close_index
-from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, reachable_region
+from umi_aug.recon.sdf_grid import build_scene_sdf, reachable_region
 from umi_aug.recon.sfm import feature_mask, run_sfm
 
 __all__ = ["DatasetInput", "DatasetAssets", "DatasetCheck", "is_dataset_path", "check_dataset",
@@ -436,7 +436,9 @@ def _read_frames(dataset: Path, episode: int, idx: np.ndarray) -> np.ndarray:
     with ReplayBuffer.open(dataset) as buf:
         sl = buf.get_episode_slice(int(episode))
         arr = buf["camera0_rgb"]
-        return read_rows(arr, np.asarray(idx, np.int64) + sl.start)  # their chunks decoded on the cores
+        # their chunks decoded on the cores, once per process: the triangulation, the 3DGS views, the gripper mask
+        # and the overlay originals read many of the same frames
+        return read_rows(arr, np.asarray(idx, np.int64) + sl.start, cache=shared_decoded_chunks())
 
 
 @dataclass
@@ -537,9 +539,7 @@ def _stage_sdf(work: Path, dataset: Path, scene: StageResult, eps: list[int], de
                                f"lie near the reachable region; too little of the scene around the gripper to "
                                f"check collisions")
         near = SceneCloud(cloud.points[inside], cloud.colors[inside], cloud.normals[inside])
-        sdf = build_scene_sdf(near, lo, hi, rc.voxel_m, rc.inflation_m, max_voxels=rc.max_voxels)
-        half = np.sqrt(3.0) / 2.0 * sdf.voxel
-        sdf = VoxelSDF(np.abs(sdf.values + half) - half, sdf.origin, sdf.voxel, sdf.inflation)
+        sdf = build_scene_sdf(near, lo, hi, rc.voxel_m, rc.inflation_m, max_voxels=rc.max_voxels, signed=False)
         sdf.save(out / "scene_sdf.npz")
         contacts = []
         for e in eps:

@@ -3,6 +3,7 @@
 * :func:`_reference_sdf` mirrors :func:`umi_aug.recon.sdf_grid.build_scene_sdf` (the scene SDF as a
   :class:`~umi_aug.recon.sdf_grid.VoxelSDF`): brute-force nearest points, same sign rule, evaluated exactly at each
   query (no grid, no offset).
+* :func:`_reference_unsigned_sdf`: the unsigned field as the signed one folded to its magnitude.
 """
 
 from __future__ import annotations
@@ -48,3 +49,15 @@ def _reference_sdf(points_world: np.ndarray, cloud: SceneCloud, h: float, sign_n
         d_out[a:a + chunk] = s * dk[:, 0]
         g_out[a:a + chunk] = s[:, None] * v / nv
     return d_out, g_out
+
+
+def _reference_unsigned_sdf(cloud: SceneCloud, lo: np.ndarray, hi: np.ndarray, voxel: float,
+                            inflation: float = 0.0):
+    """Reference of ``build_scene_sdf(..., signed=False)``: the signed field (every sign vote taken) folded to its
+    magnitude, ``|v + √3/2·h| − √3/2·h`` per node (how a dataset scene's unsigned field was made before session 40).
+    Returns a :class:`~umi_aug.recon.sdf_grid.VoxelSDF`."""
+    from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf
+
+    sdf = build_scene_sdf(cloud, lo, hi, voxel, inflation)
+    half = np.sqrt(3.0) / 2.0 * sdf.voxel
+    return VoxelSDF(np.abs(sdf.values + half) - half, sdf.origin, sdf.voxel, sdf.inflation)

@@ -131,10 +131,11 @@ class VoxelSDF:
 
     # ---------------------------------------------------------------------------------------------- file I/O
     def save(self, path: str | os.PathLike) -> Path:
-        """Write ``.npz`` (float64 ``values``, ``origin``, ``voxel``, ``inflation``) atomically."""
+        """Write ``.npz`` (float64 ``values``, ``origin``, ``voxel``, ``inflation``) atomically, uncompressed: a
+        field's float64 distances deflate by ~5 % (15.8 against 16.7 MB on the real episode) for 0.5 s of zlib."""
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, values=self.values, origin=self.origin, voxel=np.float64(self.voxel),
+                np.savez(fh, values=self.values, origin=self.origin, voxel=np.float64(self.voxel),
                                     inflation=np.float64(self.inflation),
                                     frame=np.array("world = UMI table-tag frame, z up, metres"))
         return Path(path)
@@ -259,7 +260,7 @@ def carve_free_nodes(origins: np.ndarray, ends: np.ndarray, lo: np.ndarray, h: f
 def build_scene_sdf(cloud: SceneCloud, lo: np.ndarray, hi: np.ndarray, voxel: float | None = None,
                     inflation: float = 0.0, sign_neighbours: int = C.SDF_SIGN_NEIGHBOURS,
                     max_voxels: int = C.SDF_MAX_VOXELS, workers: int = 2,
-                    rays: tuple[np.ndarray, np.ndarray] | None = None) -> VoxelSDF:
+                    rays: tuple[np.ndarray, np.ndarray] | None = None, signed: bool = True) -> VoxelSDF:
     """Bake the scene SDF over the box ``[lo, hi]`` (see the module docstring for the rules).
 
     Args:
@@ -270,6 +271,11 @@ def build_scene_sdf(cloud: SceneCloud, lo: np.ndarray, hi: np.ndarray, voxel: fl
         sign_neighbours: K of the sign vote.
         max_voxels: node budget when ``voxel`` is None; an explicit voxel may not exceed 4× this.
         rays: (camera centres [R, 3], observed points [R, 3]) for visibility carving, or None (sign vote only).
+        signed: False: the UNSIGNED field, every node ``distance to the nearest point − √3/2·h`` (free on both
+            sides of every surface; for clouds whose normals are too poor to vote, e.g. one demo's sparse SfM
+            cloud). Only the nearest point is queried and neither the vote nor ``rays`` is used, so it costs a
+            fraction of the signed field; the values equal ``|signed + √3/2·h| − √3/2·h`` of the signed one to
+            rounding (:func:`umi_aug.recon._ref._reference_unsigned_sdf`).
     Raises:
         ReconError: empty/tiny cloud, bad region, too many nodes.
     """
@@ -286,7 +292,7 @@ def build_scene_sdf(cloud: SceneCloud, lo: np.ndarray, hi: np.ndarray, voxel: fl
         raise ReconError(f"build_scene_sdf: {n.tolist()} = {int(np.prod(n))} nodes at voxel {h * 1000:.1f} mm "
                          f"exceeds 4 x max_voxels ({max_voxels}); use a coarser voxel or a smaller region")
     tree = cKDTree(cloud.points)
-    k = int(min(max(1, sign_neighbours), len(cloud)))
+    k = int(min(max(1, sign_neighbours), len(cloud))) if signed else 1
     axes = [lo[i] + h * np.arange(n[i]) for i in range(3)]
     vals = np.empty(int(np.prod(n)))
     nyz = int(n[1] * n[2])
@@ -298,9 +304,9 @@ def build_scene_sdf(cloud: SceneCloud, lo: np.ndarray, hi: np.ndarray, voxel: fl
         q = np.concatenate([np.column_stack([np.full(nyz, x), yz]) for x in xs])
         dist, idx = tree.query(q, k=k, workers=workers)
         dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
-        s = sign_vote(q, cloud.points[idx], cloud.normals[idx], dist, h)
+        s = sign_vote(q, cloud.points[idx], cloud.normals[idx], dist, h) if signed else 1.0
         vals[x0 * nyz:(x0 + len(xs)) * nyz] = s * dist[:, 0]
-    if rays is not None:
+    if rays is not None and signed:
         free = carve_free_nodes(rays[0], rays[1], lo, h, tuple(int(x) for x in n)).reshape(-1)
         vals[free] = np.abs(vals[free])
     vals -= math.sqrt(3.0) / 2.0 * h
