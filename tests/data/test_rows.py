@@ -11,7 +11,7 @@ import zarr
 from numcodecs import Blosc
 
 from umi_aug.data import ReplayBuffer, umi_image_compressor
-from umi_aug.data.rows import read_rows
+from umi_aug.data.rows import DecodedChunks, read_rows, shared_decoded_chunks
 from umi_aug.errors import DatasetError
 
 
@@ -65,3 +65,63 @@ def test_read_rows_from_a_zip_and_a_corrupt_chunk(rng, tmp_path):
     store[arr._chunk_key((1, 0, 0, 0))] = b"not a JPEG XL stream"
     with pytest.raises(DatasetError, match=r"/img: chunk '.*1\.0\.0\.0' does not decode"):
         read_rows(arr, [0, 1, 2], threads=2)
+
+
+def test_read_rows_through_a_cache_equals_without(rng, tmp_path):
+    """Reads through a :class:`DecodedChunks` give zarr's own rows, decode each stored chunk once (hits counted),
+    see a chunk rewritten in place as new bytes, keep to their byte budget (least recently used dropped), and
+    return arrays of the caller's own (writing to them leaves the cache as it was)."""
+    ReplayBuffer.create()
+    root = zarr.open_group(str(tmp_path / "a.zarr"), mode="w")
+    n = 12
+    img = root.create_dataset("img", shape=(n, 24, 32, 3), chunks=(1, 24, 32, 3), dtype=np.uint8,
+                              compressor=umi_image_compressor())
+    img[:] = rng.integers(0, 256, size=img.shape, dtype=np.uint8)
+    low = root.create_dataset("low", shape=(n, 5), chunks=(4, 5), dtype=np.float32, compressor=Blosc("zstd"))
+    low[: n - 4] = rng.normal(size=(n - 4, 5)).astype(np.float32)  # the last chunk is never written
+    for arr in (img, low):
+        cache = DecodedChunks()
+        for threads in (1, 2):
+            for _ in range(3):
+                rows = _rows(rng, n)
+                uniq, inv = np.unique(rows, return_inverse=True)
+                want = arr.get_orthogonal_selection((uniq,))[inv]
+                np.testing.assert_array_equal(read_rows(arr, rows, threads=threads, cache=cache), want)
+    cache = DecodedChunks()
+    first = read_rows(img, np.arange(n), cache=cache)
+    assert (cache.misses, cache.hits, len(cache)) == (n, 0, n)
+    again = read_rows(img, [3, 3, 7], cache=cache)
+    assert (cache.misses, cache.hits) == (n, 2)
+    np.testing.assert_array_equal(again, first[[3, 3, 7]])
+    again[:] = 0  # the caller's copy
+    np.testing.assert_array_equal(read_rows(img, [3], cache=cache), first[[3]])
+    new = rng.integers(0, 256, size=(24, 32, 3), dtype=np.uint8)
+    img[3] = new  # rewritten in place: other bytes, a miss
+    misses = cache.misses
+    np.testing.assert_array_equal(read_rows(img, [3], cache=cache)[0], img[3])
+    assert cache.misses == misses + 1
+    one = first[0].nbytes
+    small = DecodedChunks(max_bytes=3 * one)
+    read_rows(img, [0, 1, 2, 4], cache=small, threads=1)
+    assert len(small) == 3 and small.nbytes <= 3 * one
+    read_rows(img, [0], cache=small)  # the oldest (row 0) was dropped
+    assert small.hits == 0
+    kept = next(iter(small._items.values()))
+    assert not kept.flags.writeable
+    assert shared_decoded_chunks() is shared_decoded_chunks()
+    with pytest.raises(ValueError, match="max_bytes"):
+        DecodedChunks(-1)
+
+
+def test_a_cache_never_hides_a_corrupt_chunk(rng, tmp_path):
+    ReplayBuffer.create()
+    store = zarr.DirectoryStore(str(tmp_path / "c.zarr"))
+    root = zarr.open_group(store, mode="w")
+    arr = root.create_dataset("img", shape=(3, 16, 16, 3), chunks=(1, 16, 16, 3), dtype=np.uint8,
+                              compressor=umi_image_compressor())
+    arr[:] = rng.integers(0, 256, size=arr.shape, dtype=np.uint8)
+    cache = DecodedChunks()
+    read_rows(arr, [0, 1, 2], cache=cache)
+    store[arr._chunk_key((1, 0, 0, 0))] = b"not a JPEG XL stream"
+    with pytest.raises(DatasetError, match=r"/img: chunk '.*1\.0\.0\.0' does not decode"):
+        read_rows(arr, [0, 1, 2], threads=2, cache=cache)

@@ -143,7 +143,7 @@ def overlay_originals(assets: SessionAssets, demo_index: int, src: np.ndarray) -
         span = int(src.max()) - int(src.min()) + 1 if src.size else 0
         if 2 * span < c + 1:  # a few frames (an on-the-fly sample): decoding them directly is cheaper
             return assets.original_frames(demo_index, src)
-        slot = (ident, assets.original_frames(demo_index, np.arange(c + 1)))
+        slot = (ident, assets.original_frames(demo_index, np.arange(c + 1), shared=True))
         assets.memo["overlay_originals"] = slot
     return slot[1][src]
 

@@ -155,14 +155,16 @@ class SessionAssets:
             self.memo["original_pid"] = os.getpid()
         return self.memo["original"]
 
-    def original_frames(self, demo_index: int, frames: np.ndarray | slice) -> np.ndarray:
-        """Original policy frames ``[K, S, S, 3]`` uint8 of demo ``demo_index``."""
-        from umi_aug.data.rows import read_rows  # lazy, start-up: zarr
+    def original_frames(self, demo_index: int, frames: np.ndarray | slice, shared: bool = False) -> np.ndarray:
+        """Original policy frames ``[K, S, S, 3]`` uint8 of demo ``demo_index``. ``shared``: through this process's
+        :func:`umi_aug.data.rows.shared_decoded_chunks` (frames the scene's stages decoded are not decoded again)."""
+        from umi_aug.data.rows import read_rows, shared_decoded_chunks  # lazy, start-up: zarr
 
         sl = self.original.get_episode_slice(int(demo_index))
         rows = np.arange(sl.start, sl.stop)[frames] if isinstance(frames, slice) else (
             np.asarray(frames, dtype=np.int64) + sl.start)
-        return read_rows(self.original["camera0_rgb"], rows)  # only these frames, decoded on the cores
+        # only these frames, decoded on the cores
+        return read_rows(self.original["camera0_rgb"], rows, cache=shared_decoded_chunks() if shared else None)
 
     def original_lowdim(self, demo_index: int) -> dict[str, np.ndarray]:
         """Every non-image key of demo ``demo_index``'s original episode, as stored (key → ``[H, ...]`` rows)."""

@@ -33,7 +33,7 @@ from umi_aug.augment.config import AugmentConfig
 from umi_aug.augment.mirrors import detect_mirror_convention, mirror_mask, mirror_pixels_from_source
 from umi_aug.augment.overlay import choose_overlay_mask
 from umi_aug.data import ReplayBuffer
-from umi_aug.data.rows import read_rows
+from umi_aug.data.rows import read_rows, shared_decoded_chunks
 from umi_aug.errors import AugmentError
 from umi_aug.io_utils import atomic_write_text
 from umi_aug.recon.cloud import read_ply as read_cloud
@@ -126,7 +126,7 @@ def gripper_mask_stage(work: Path, cfg: AugmentConfig, fp: str, dataset: Path, d
                 sl = buf.get_episode_slice(d.index)
                 idx = np.linspace(0, max(0, end - 1), min(end, 48)).round().astype(int)
                 # only these frames are decoded (one chunk per frame, on the cores), not the whole episode
-                frames.append(read_rows(buf["camera0_rgb"], idx + sl.start))
+                frames.append(read_rows(buf["camera0_rgb"], idx + sl.start, cache=shared_decoded_chunks()))
         frames = np.concatenate(frames)
         mask, info = choose_overlay_mask(frames, S, cfg.overlay.mask, cfg.overlay.std_threshold,
                                          cfg.overlay.min_coverage)

@@ -5,11 +5,18 @@ chunk (``camera0_rgb``, chunks ``(1, S, S, 3)``; 5-10 ms to decode at 224², los
 libjxl decoder releases the GIL, so reading the frames a stage needs on the machine's cores takes about
 1/threads of the time. :func:`read_rows` returns exactly ``arr.get_orthogonal_selection((rows,))`` (its reference
 in ``tests/data/test_rows.py``).
+
+Stages that read the same frames one after the other (a dataset scene's triangulation, its 3DGS views, the gripper
+mask, the export's overlay originals) can share a :class:`DecodedChunks`: decoded chunks kept by their stored bytes'
+hash, so a frame is decoded once per process (:func:`shared_decoded_chunks`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
+import threading
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -18,7 +25,79 @@ from numcodecs.compat import ensure_ndarray
 
 from umi_aug.errors import DatasetError
 
-__all__ = ["read_rows"]
+__all__ = ["DecodedChunks", "read_rows", "shared_decoded_chunks"]
+
+#: What :func:`shared_decoded_chunks` keeps at most: ~1,700 UMI policy frames at 224².
+SHARED_DECODED_CHUNKS_BYTES: int = 256 << 20
+
+
+class DecodedChunks:
+    """Decoded chunks by content, least recently used dropped first beyond ``max_bytes``; thread-safe.
+
+    A chunk's key is its array's dtype, chunk shape and codec configuration and a 128-bit BLAKE2b of its stored
+    bytes, so a hit is the decode of the very same bytes (whatever the store, path or array it came from) and a
+    chunk rewritten in place is a miss. The arrays kept are read-only."""
+
+    def __init__(self, max_bytes: int = SHARED_DECODED_CHUNKS_BYTES):
+        if int(max_bytes) < 0:
+            raise ValueError(f"DecodedChunks: max_bytes must be >= 0, got {max_bytes}")
+        self.max_bytes = int(max_bytes)
+        self._items: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self.hits = 0
+        self.misses = 0
+
+    @staticmethod
+    def key(arr: zarr.Array, raw: bytes) -> tuple:
+        """The cache key of stored chunk bytes ``raw`` of ``arr``."""
+        codec = repr(sorted(arr.compressor.get_config().items()))
+        return (arr.dtype.str, tuple(int(c) for c in arr.chunks), codec,
+                hashlib.blake2b(memoryview(raw), digest_size=16).digest())
+
+    def get(self, key: tuple) -> np.ndarray | None:
+        with self._lock:
+            a = self._items.get(key)
+            if a is None:
+                self.misses += 1
+                return None
+            self._items.move_to_end(key)
+            self.hits += 1
+            return a
+
+    def put(self, key: tuple, chunk: np.ndarray) -> None:
+        a = np.array(chunk, copy=True)
+        a.flags.writeable = False
+        if a.nbytes > self.max_bytes:
+            return
+        with self._lock:
+            old = self._items.pop(key, None)
+            if old is not None:
+                self._bytes -= old.nbytes
+            self._items[key] = a
+            self._bytes += a.nbytes
+            while self._bytes > self.max_bytes:
+                _, dropped = self._items.popitem(last=False)
+                self._bytes -= dropped.nbytes
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the decoded chunks kept."""
+        return self._bytes
+
+
+_SHARED: DecodedChunks | None = None
+
+
+def shared_decoded_chunks() -> DecodedChunks:
+    """This process's :class:`DecodedChunks` (``SHARED_DECODED_CHUNKS_BYTES``), made on first use."""
+    global _SHARED
+    if _SHARED is None:
+        _SHARED = DecodedChunks()
+    return _SHARED
 
 
 def _default_threads() -> int:
@@ -34,10 +113,12 @@ def _fast_path(arr: zarr.Array) -> bool:
             and not arr.filters and arr.order == "C" and arr.dtype != object)
 
 
-def read_rows(arr: zarr.Array, rows: np.ndarray | list[int], threads: int | None = None) -> np.ndarray:
+def read_rows(arr: zarr.Array, rows: np.ndarray | list[int], threads: int | None = None,
+              cache: DecodedChunks | None = None) -> np.ndarray:
     """``arr[rows]`` for integer rows along axis 0 (any order, repeats allowed): each chunk holding a wanted row is
     read once and decoded on ``threads`` threads (default: ``OMP_NUM_THREADS``, else the cores this process may
-    use). Arrays chunked along other axes, filtered or uncompressed are read by zarr itself.
+    use). Arrays chunked along other axes, filtered or uncompressed are read by zarr itself. ``cache``: chunks
+    decoded before (the same stored bytes) are taken from it and the ones decoded here are added to it.
 
     Raises:
         DatasetError: a row outside ``[0, len(arr))``, or a chunk that does not decode to the chunk's size.
@@ -71,12 +152,24 @@ def read_rows(arr: zarr.Array, rows: np.ndarray | list[int], threads: int | None
                                f"{int(np.prod(chunk_shape))} (chunk shape {chunk_shape})")
         return flat.reshape(chunk_shape)
 
-    k = max(1, min(int(threads or _default_threads()), len(keys)))
+    chunks: list[np.ndarray | None] = [None] * len(keys)
+    ckeys: list[tuple | None] = [None] * len(keys)
+    if cache is not None:
+        for i, r in enumerate(raw):
+            if r is not None:
+                ckeys[i] = cache.key(arr, r)
+                chunks[i] = cache.get(ckeys[i])
+    todo = [i for i in range(len(keys)) if chunks[i] is None]
+    k = max(1, min(int(threads or _default_threads()), len(todo)))
     if k == 1:
-        chunks = [decode(i) for i in range(len(keys))]
+        decoded = [decode(i) for i in todo]
     else:
         with ThreadPoolExecutor(k) as ex:
-            chunks = list(ex.map(decode, range(len(keys))))
+            decoded = list(ex.map(decode, todo))
+    for i, c in zip(todo, decoded):
+        chunks[i] = c
+        if ckeys[i] is not None:
+            cache.put(ckeys[i], c)
     within = rows - chunk_ids[inv] * c0
     out = np.empty((len(rows),) + tuple(arr.shape[1:]), dtype=arr.dtype)
     for j in range(len(rows)):
