@@ -34,6 +34,7 @@ import json
 import logging
 import os
 import re
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -45,6 +46,7 @@ from tqdm import tqdm
 from umi_aug.augment.cache import StageResult, build_lock, run_stage
 from umi_aug.augment.config import AugmentConfig, splat_key
 from umi_aug.augment.obstacle_stage import check_obstacle_assets
+from umi_aug.augment.prefetch import import_in_background
 from umi_aug.augment.preflight import MAX_STEP_DEG, MAX_STEP_M
 from umi_aug.augment.scene_grouping import group_by_place
 from umi_aug.augment.session_assets import OBSTACLE_WORK_KEY, DemoInfo, SessionAssets, drop_process_cache
@@ -79,6 +81,11 @@ REQUIRED_KEYS: tuple[str, ...] = ("camera0_rgb", "robot0_eef_pos", "robot0_eef_r
 MIN_EPISODE_FRAMES: int = 16
 #: Cloud points further than this outside the reachable region are left out of the SDF (metres).
 SDF_CROP_M: float = 0.15
+#: What a dataset scene's stages after the triangulation import (on a thread while it runs: _stage_scene):
+#: the cloud clean-up's open3d and the distance field's KD-tree; with renders, torch and the 3DGS trainer.
+_LATER_MODULES: tuple[str, ...] = ("open3d", "scipy.spatial")
+_SPLAT_MODULES: tuple[str, ...] = ("torch", "umi_aug.splat.train", "umi_aug.splat.train_session",
+                                   "umi_aug.splat.renderer", "umi_aug.splat.compose")
 #: Groups whose heavy members (SDF, Gaussians, problems) stay loaded per process.
 _MAX_LOADED_GROUPS = 2
 _LOADED: list[str] = []
@@ -452,8 +459,12 @@ class EpisodePoses:
 
 
 def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict[int, EpisodePoses],
-                 fps: dict[int, float], cfg: AugmentConfig, inp: DatasetInput) -> StageResult:
-    """Known-pose triangulation + cloud + SDF + contacts of one group (outputs as the session reconstruction's)."""
+                 fps: dict[int, float], cfg: AugmentConfig, inp: DatasetInput,
+                 prefetch: Sequence[str] = ()) -> tuple[StageResult, threading.Thread | None]:
+    """Known-pose triangulation + cloud of one group (outputs as the session reconstruction's). ``prefetch``:
+    modules the later stages import, imported on a thread while the triangulation runs on one core
+    (:mod:`umi_aug.augment.prefetch`). Returns the stage and that thread (None: the stage was cached)."""
+    started: list[threading.Thread] = []
     # known poses always (the TCP poses are the SLAM's); the same key whatever sfm.mode the caller left
     sfm_fields: dict = {} if inp.sfm_pose_pairs else {"pose_pair_max_dist_m": 0.0}
     if inp.sfm_known_pose_verification:
@@ -485,7 +496,9 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
             lengths.append(len(idx))
         try:
             sfm = run_sfm(paths, names, intr, out / "colmap", rc.sfm, sequence_lengths=lengths,
-                          T_world_cam=np.stack(T), masks=feature_mask(intr))
+                          T_world_cam=np.stack(T), masks=feature_mask(intr),
+                          before_mapping=(lambda: started.append(import_in_background(prefetch))) if prefetch
+                          else None)
         finally:
             import shutil
 
@@ -508,7 +521,8 @@ def _stage_scene(work: Path, dataset: Path, fp: str, eps: list[int], demos: dict
     conf = {"recon": rc, "image_size": cfg.image_size, "sfm_stride": inp.sfm_stride, "up": up,
             "tcp": inp.tcp_offset_m}
     # version 2: no cloud points inside the camera's own path (recon.cloud.inside_camera_body)
-    return run_stage("scene", work, conf, {"dataset": fp, "episodes": ",".join(map(str, eps))}, fn, version=2)
+    st = run_stage("scene", work, conf, {"dataset": fp, "episodes": ",".join(map(str, eps))}, fn, version=2)
+    return st, (started[0] if started else None)
 
 
 def _stage_sdf(work: Path, dataset: Path, scene: StageResult, eps: list[int], demos: dict[int, EpisodePoses],
@@ -646,10 +660,13 @@ def _build_group(dataset: Path, work: Path, fp: str, g: str, gd: dict[int, Episo
     eps = sorted(gd)
     with build_lock(gw):
         try:
-            scene = _stage_scene(gw, dataset, fp, eps, gd, fps, cfg, inp)
+            scene, importing = _stage_scene(gw, dataset, fp, eps, gd, fps, cfg, inp,
+                                            _LATER_MODULES + (_SPLAT_MODULES if renders else ()))
             sdf_st = _stage_sdf(gw, dataset, scene, eps, gd, fps, cfg)
             contact = contact_stage(gw, sdf_st, [gd[e] for e in eps], dict(cfg.recon.contact_overrides),
                                     cfg.pregrasp_clearance_m)
+            if importing is not None:
+                importing.join()  # before any worker is forked (umi_aug.augment.prefetch)
             rows = json.loads(contact.path("contacts").read_text())
             contact_idx = {e: r["splice_index"] for e, r in zip(eps, rows)}
             paths = {"sdf": str(sdf_st.path("sdf")), "cloud": str(scene.path("cloud")), "dataset": str(dataset)}

@@ -24,7 +24,7 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Callable, Literal, Sequence
 
 import cv2
 import numpy as np
@@ -463,7 +463,7 @@ def run_sfm(image_paths: Sequence[str | os.PathLike], names: Sequence[str], intr
             work_dir: str | os.PathLike, config: SfmConfig | None = None,
             sequence_lengths: Sequence[int] | None = None, T_world_cam: np.ndarray | None = None,
             pose_valid: np.ndarray | None = None, masks: np.ndarray | Sequence[np.ndarray] | None = None,
-            ) -> SfmResult:
+            before_mapping: Callable[[], object] | None = None) -> SfmResult:
     """Run SfM (or known-pose triangulation) on frames.
 
     Args:
@@ -478,6 +478,8 @@ def run_sfm(image_paths: Sequence[str | os.PathLike], names: Sequence[str], intr
         pose_valid: np.ndarray | None,  # [N] bool, which known poses to trust (default all)
         masks: one ``[H, W]`` uint8 feature mask (255 keep) for all frames, or N of them; default
             :func:`feature_mask` (UMI's predefined gripper mask + image circle).
+        before_mapping: called once the features are matched, right before the mapping / triangulation (e.g. to
+            start work for the idle cores: known-pose triangulation runs on one thread).
     Returns:
         :class:`SfmResult` (in COLMAP's frame for ``full``, in the world frame for ``known_poses``).
     Raises:
@@ -531,6 +533,8 @@ def run_sfm(image_paths: Sequence[str | os.PathLike], names: Sequence[str], intr
     db = _extract_and_match(pc, work, names, intr, cfg, pairs, timings,
                             T_world_cam if cfg.mode == "known_poses" else None, pose_valid)
     opt = _mapping_options(pc, cfg)
+    if before_mapping is not None:
+        before_mapping()
     t = time.perf_counter()
     if cfg.mode == "full":
         models = pc.incremental_mapping(db, work / "images", work / "sparse", options=opt)
