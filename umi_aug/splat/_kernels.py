@@ -28,6 +28,15 @@ rasteriser that training uses (:func:`raster_fwd_kernel`, :func:`raster_bwd_kern
 transmittance it reconstructs are bit-identical. Inference, which is never replayed, uses
 :func:`raster_fwd_fused_kernel`: the same tile loop (:func:`_raster_fwd_tile`, inlined) with fused multiply-adds only. (The projection,
 which is never replayed, uses a fastmath subset without ``nnan``/``ninf``, so its NaN/inf culling still holds.)
+
+Every function here that is not inlined states ``fastmath=False``. numba compiles a helper once per signature, on its
+first call, with the fastmath flags of the caller that made that call when the helper states none, and caches that
+code on disk. Before session 40 the helpers stated none, so whichever kernel compiled first decided their code for
+every kernel after it: a process that ran the fused inference kernels first (a render, a test) left contracted
+helpers (``_kb_project_jacobian``, the spans, the tile gather) in ``__pycache__``, and training then linked them. The
+real episode's 3DGS came out at 27.35 dB held-out with such a cache and 27.30 dB compiled fresh, the same code.
+Helpers marked ``inline="always"`` are compiled inside each caller with its flags, as intended
+(``tests/splat/test_kernel_flags.py``).
 """
 
 from __future__ import annotations
@@ -110,7 +119,7 @@ def raster_constants(dtype, min_transmittance: float = TRANSMITTANCE_THRESHOLD) 
 # ------------------------------------------------------------------------------------------------------------
 # Kannala–Brandt projection and Jacobian of one camera-frame point (float64; same formulas as camera.kb)
 # ------------------------------------------------------------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _kb_project_jacobian(px, py, pz, fx, fy, cx, cy, k1, k2, k3, k4):
     """Returns ``ok, theta, u, v, j00, j01, j02, j10, j11, j12`` (``d(u,v)/d(x,y,z)``, exact at ``r = 0``)."""
     m = max(abs(px), max(abs(py), abs(pz)))
@@ -319,7 +328,7 @@ def project_kernel(
             counts_out[i] = _row_tiles(packed, i, width, height, 1, dummy, False)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _write_footprint(packed, i, sxx, sxy, syy, det):  # pragma: no cover - compiled
     """Columns 10..15 of row ``i`` from its 2D covariance ``[[sxx, sxy], [sxy, syy]]`` (float64, ``det`` its
     determinant) and the stored opacity (``lim = -1``: no footprint)."""
@@ -338,7 +347,7 @@ def _write_footprint(packed, i, sxx, sxy, syy, det):  # pragma: no cover - compi
             packed[i, col] = 0.0
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def footprint_kernel(packed):  # pragma: no cover - compiled
     """Fill columns 10..15 of every row from its conic (columns 2..4) and opacity (column 5)."""
     for i in prange(packed.shape[0]):
@@ -353,7 +362,7 @@ def footprint_kernel(packed):  # pragma: no cover - compiled
 # ------------------------------------------------------------------------------------------------------------
 # Footprints: bounding boxes, tile tests, per-row pixel spans (float64, shared by binning, forward, backward)
 # ------------------------------------------------------------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _pixel_range(center, half, lo, hi):
     """Integer pixel span ``[ceil(center - half), floor(center + half)]`` clipped to ``[lo, hi]``."""
     a = center - half
@@ -365,14 +374,14 @@ def _pixel_range(center, half, lo, hi):
     return ia, ib
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _quad(a, beta, gamma, dx, dy):
     """``a (dx + beta dy)^2 + gamma dy^2`` (the conic quadratic form without cancellation)."""
     e = dx + beta * dy
     return a * e * e + gamma * dy * dy
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _ellipse_hits_rect(mx, my, a, beta, gamma, lim, x0, x1, y0, y1):
     """Whether ``min over [x0,x1]x[y0,y1]`` of the quadratic form (``d = p - mean``) is ``<= lim``."""
     if x0 <= mx <= x1 and y0 <= my <= y1:
@@ -392,7 +401,7 @@ def _ellipse_hits_rect(mx, my, a, beta, gamma, lim, x0, x1, y0, y1):
     return best <= tol
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _tile_rect(packed, g, width, height):
     """Tile range ``tx0, tx1, ty0, ty1`` (inclusive; empty when tx0 > tx1) of the footprint of row ``g``."""
     if packed[g, 10] < 0.0:
@@ -404,7 +413,7 @@ def _tile_rect(packed, g, width, height):
     return ix0 // _TS, ix1 // _TS, iy0 // _TS, iy1 // _TS
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _row_tiles(packed, g, width, height, tiles_x, out, fill):
     """Count (``fill=False``) or write into ``out`` the tiles reached by the footprint of row ``g``."""
     tx0, tx1, ty0, ty1 = _tile_rect(packed, g, width, height)
@@ -427,7 +436,7 @@ def _row_tiles(packed, g, width, height, tiles_x, out, fill):
     return n
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def count_tiles_kernel(packed, rows, width, height, counts):  # pragma: no cover - compiled
     """``counts[i]`` = number of tiles whose pixel rectangle the footprint of ``packed[rows[i]]`` reaches."""
     dummy = np.empty(0, dtype=np.int64)
@@ -435,7 +444,7 @@ def count_tiles_kernel(packed, rows, width, height, counts):  # pragma: no cover
         counts[i] = _row_tiles(packed, rows[i], width, height, 1, dummy, False)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def fill_tiles_kernel(packed, rows, start_of, counts, width, height, tiles_x, isect_tile, isect_row):  # pragma: no cover
     """Intersection records of ``rows[i]`` at ``start_of[i] .. start_of[i] + counts[i]`` (Gaussian-major, the
     Gaussians in depth order): ``isect_tile[e]``, ``isect_row[e]``; same decisions as :func:`count_tiles_kernel`."""
@@ -448,7 +457,7 @@ def fill_tiles_kernel(packed, rows, start_of, counts, width, height, tiles_x, is
                 isect_row[e] = rows[i]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def sort_by_tile_kernel(isect_tile, isect_row, n_tiles, tile_start, sorted_row, pos_of_isect):  # pragma: no cover
     """Stable counting sort of the intersections by tile (keeps the depth order within each tile)."""
     m = isect_tile.shape[0]
@@ -467,7 +476,7 @@ def sort_by_tile_kernel(isect_tile, isect_row, n_tiles, tile_start, sorted_row, 
         pos_of_isect[e] = p
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def radix_argsort_f64(keys):  # pragma: no cover - compiled
     """Stable argsort of non-negative finite float64 keys (LSD radix on the IEEE bits, 4 x 16-bit digits)."""
     n = keys.shape[0]
@@ -496,7 +505,7 @@ def radix_argsort_f64(keys):  # pragma: no cover - compiled
 # ------------------------------------------------------------------------------------------------------------
 # Rasterisation
 # ------------------------------------------------------------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _row_span(mx, my, lim, gamma, beta, inv_a, yf, x_lo, x_hi):
     """Pixels ``[xa, xb]`` of row ``yf`` (clipped to ``[x_lo, x_hi]``) that may lie inside the footprint
     ``|dx + beta dy| <= sqrt((lim - gamma dy^2) / a)`` (float64 arguments; one square root)."""
@@ -507,7 +516,7 @@ def _row_span(mx, my, lim, gamma, beta, inv_a, yf, x_lo, x_hi):
     return _pixel_range(mx - beta * dy, half, x_lo, x_hi)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _gather_tile(packed, uv64, sorted_row, s0, s1, x0, y0):  # pragma: no cover - compiled
     """Rows ``sorted_row[s0:s1]`` of ``packed`` as a contiguous ``[s1 - s0, 16]`` buffer with the means in
     tile-local pixels (``uv64 - (x0, y0)``: float32 then resolves them to ~1e-6 px at any image size)."""
@@ -713,7 +722,7 @@ def _raster_fwd_tile_scalar(
     _fwd_tile_end(t, x0, y0, tw, th, T, Cr, Cg, Cb, D, last, evals, out_rgb, out_depth, out_T, out_last, out_evals)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def raster_fwd_kernel(
     packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
     out_rgb, out_depth, out_T, out_last, out_evals, n_workers,
@@ -742,7 +751,7 @@ def raster_fwd_kernel(
                              out_rgb, out_depth, out_T, out_last, out_evals)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def _raster_fwd_kernel_per_tile(
     packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
     out_rgb, out_depth, out_T, out_last, out_evals,
@@ -756,7 +765,7 @@ def _raster_fwd_kernel_per_tile(
                                 out_rgb, out_depth, out_T, out_last, out_evals)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def _raster_fwd_kernel_scalar(
     packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst, active,
     out_rgb, out_depth, out_T, out_last, out_evals, n_workers,
@@ -832,7 +841,7 @@ def _bwd_tile_begin(t, packed, uv64, tile_start, sorted_row, width, height, tile
     return tw, th, (Tc, Tf, lastp, gc, gd, gT, Rc, Rd, la, lc, ld), max_last, tp
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _uncomposite(p, alpha, G, oG, dx, dy, cr, cg, cb, dep, a64, b64, c64, max_alpha, one, state,
                  acc):  # pragma: no cover - compiled
     """Pixel ``p`` gives back one Gaussian (back to front) of ``alpha = min(max_alpha, oG)``, ``oG = opacity G``, at
@@ -976,7 +985,7 @@ def _raster_bwd_tile_scalar(
             out_grad[s, col] = acc[col]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def raster_bwd_kernel(
     packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
     final_T, last_idx, g_rgb, g_depth, g_T, out_grad, n_workers,
@@ -996,7 +1005,7 @@ def raster_bwd_kernel(
                              final_T, last_idx, g_rgb, g_depth, g_T, out_grad)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def _raster_bwd_kernel_per_tile(
     packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
     final_T, last_idx, g_rgb, g_depth, g_T, out_grad,
@@ -1009,7 +1018,7 @@ def _raster_bwd_kernel_per_tile(
                                 final_T, last_idx, g_rgb, g_depth, g_T, out_grad)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def _raster_bwd_kernel_scalar(
     packed, uv64, tile_start, sorted_row, width, height, tiles_x, xs, ys, cst,
     final_T, last_idx, g_rgb, g_depth, g_T, out_grad, n_workers,
@@ -1023,7 +1032,7 @@ def _raster_bwd_kernel_scalar(
                                     final_T, last_idx, g_rgb, g_depth, g_T, out_grad)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def reduce_grads_kernel(isect_grad, pos_of_isect, offsets, rows, out):  # pragma: no cover - compiled
     """``out[rows[i]] = sum of isect_grad[pos_of_isect[e]]`` over the intersections ``e`` of Gaussian ``i``."""
     ncol = isect_grad.shape[1]

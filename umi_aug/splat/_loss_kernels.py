@@ -32,7 +32,7 @@ from umi_aug.runtime import quiet_numba_threading_warning
 quiet_numba_threading_warning()
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=False)
 def blur_maps_kernel(maps, g, tmp, out):  # pragma: no cover - compiled
     """Separable zero-padded blur of ``maps [K, H, W]`` with the odd 1-D kernel ``g [T]`` into ``out [K, H, W]``
     (``tmp``: scratch of the same shape; horizontal pass, then vertical)."""
@@ -66,7 +66,7 @@ def blur_maps_kernel(maps, g, tmp, out):  # pragma: no cover - compiled
                 dst[j] += gt * srow[j]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=False)
 def composite_maps_kernel(pred, target, m, x, maps):  # pragma: no cover - compiled
     """``x = where(m, pred, target)`` and ``maps [9, H, W]`` = ``x``, ``x^2``, ``x target`` (3 channels each)."""
     C, H, W = pred.shape
@@ -80,7 +80,7 @@ def composite_maps_kernel(pred, target, m, x, maps):  # pragma: no cover - compi
                 maps[2 * C + c, i, j] = v * target[c, i, j]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=False)
 def ssim_partials_kernel(x, y, m, blurred, target_stats, c1, c2, partials, row_l1, row_ssim):  # pragma: no cover
     """Per pixel and channel: the SSIM value's masked sum per row (``row_ssim [H]``), the masked L1's (``row_l1``),
     and ``partials [9, H, W]`` = ``P_mu, P_xx, P_xy`` (3 channels each, see the module docstring).
@@ -118,7 +118,7 @@ def ssim_partials_kernel(x, y, m, blurred, target_stats, c1, c2, partials, row_l
         row_l1[i] = l_acc
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=False)
 def loss_grad_kernel(x, y, m, blurred_partials, k_ssim, k_l1, grad):  # pragma: no cover - compiled
     """``grad [3, H, W]`` of ``k_l1 * sum_mask |x - y| + k_ssim * sum_mask S`` with respect to the prediction
     (``blurred_partials [9, H, W]``: the partials blurred; zero outside the mask, where ``x`` is the target)."""

@@ -22,7 +22,7 @@ from umi_aug.runtime import quiet_numba_threading_warning
 quiet_numba_threading_warning()
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def adam_rows_kernel(p, g, m, v, n_cols, step_size, b1, b2, bias_correction2, eps):  # pragma: no cover - compiled
     """Adam on the first ``n_cols`` columns of ``[N, C]`` arrays ``p`` (parameters), ``g`` (gradient), ``m``, ``v``
     (first and second moments), in place: ``m = b1 m + (1 - b1) g``, ``v = b2 v + (1 - b2) g^2``,
@@ -36,12 +36,12 @@ def adam_rows_kernel(p, g, m, v, n_cols, step_size, b1, b2, bias_correction2, ep
             p[i, j] = float(p[i, j]) - step_size * (float(m[i, j]) / denom)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _sigmoid(x):  # pragma: no cover - compiled
     return 1.0 / (1.0 + math.exp(-x)) if x >= 0.0 else math.exp(x) / (1.0 + math.exp(x))
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def position_noise_kernel(means, logit_opacities, quats_wxyz, log_scales, eps, scale, gate_k,
                           gate_x0):  # pragma: no cover - compiled
     """``means[i] += R_i diag(s_i^2) R_i^T eps[i] * scale * gate(o_i)`` in place, ``R_i`` the rotation of the

@@ -50,7 +50,7 @@ _C2_0, _C2_1, _C2_2, _C2_3, _C2_4 = SH_C2
 _C3_0, _C3_1, _C3_2, _C3_3, _C3_4, _C3_5, _C3_6 = SH_C3
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _kb_jacobian_vjp(px, py, pz, g00, g01, g02, g10, g11, g12, fx, fy, k1, k2, k3, k4):  # pragma: no cover
     """KB projection Jacobian ``J = d(u, v)/dp`` at ``p`` and the vector-Jacobian product of ``J`` itself:
     ``gp_k = sum_e g_e dJ_e/dp_k`` (the second derivatives of the projection the EWA covariance needs).
@@ -170,7 +170,7 @@ def _kb_jacobian_vjp(px, py, pz, g00, g01, g02, g10, g11, g12, fx, fy, k1, k2, k
     return u, v, j00, j01, j02, j10, j11, j12, gp0, gp1, gp2
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _rotation(qw, qx, qy, qz):  # pragma: no cover - compiled
     """Normalised quaternion (as ``quat_wxyz_to_matrix``: not normalised when ``|q|^2 <= QUAT_EPS2``), its norm
     (1 when not normalised) and the rotation matrix entries ``r00 .. r22``."""
@@ -183,7 +183,7 @@ def _rotation(qw, qx, qy, qz):  # pragma: no cover - compiled
             2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _sh_degree(sh_degree, n_rest):  # pragma: no cover - compiled
     deg = min(sh_degree, 3)
     if deg >= 3 and n_rest < 15:
@@ -195,7 +195,7 @@ def _sh_degree(sh_degree, n_rest):  # pragma: no cover - compiled
     return deg
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _sh_basis(x, y, z, Y):  # pragma: no cover - compiled
     """Real SH basis (16 values, INRIA constants and signs) of the unit direction ``(x, y, z)`` into ``Y``."""
     xx, yy, zz = x * x, y * y, z * z
@@ -212,7 +212,7 @@ def _sh_basis(x, y, z, Y):  # pragma: no cover - compiled
     Y[15] = _C3_6 * x * (xx - 3.0 * yy)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _sh_basis_vjp(x, y, z, gY, deg):  # pragma: no cover - compiled
     """``sum_k gY[k] dY_k/d(x, y, z)`` for the first ``(deg + 1)^2`` basis functions (x, y, z independent)."""
     gx = 0.0
@@ -239,7 +239,7 @@ def _sh_basis_vjp(x, y, z, gY, deg):  # pragma: no cover - compiled
     return gx, gy, gz
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _view_dir(mx, my, mz, campos):  # pragma: no cover - compiled
     """Unit direction camera centre -> mean (world) and the distance (``(0, 0, 1), 0`` at the centre)."""
     vx, vy, vz = mx - campos[0], my - campos[1], mz - campos[2]
@@ -250,7 +250,7 @@ def _view_dir(mx, my, mz, campos):  # pragma: no cover - compiled
     return 0.0, 0.0, 1.0, 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _cov_rows(j, Rcw, rot, sc, M, AB):  # pragma: no cover - compiled
     """``M = R_cw R diag(s)`` (3x3, into ``M``) and the rows ``A = J[0] M``, ``B = J[1] M`` (into ``AB[0:3]``,
     ``AB[3:6]``); ``j`` = J row-major (6), ``rot`` = R row-major (9), ``sc`` = scales (3)."""
@@ -262,7 +262,7 @@ def _cov_rows(j, Rcw, rot, sc, M, AB):  # pragma: no cover - compiled
         AB[3 + c] = j[3] * M[0, c] + j[4] * M[1, c] + j[5] * M[2, c]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def project_fwd_kernel(
     means, log_scales, quats, logit_op, sh0, sh_rest, sh_degree, Rcw, tcw, campos, cam, near, far, dilation,
     compensate, theta_slack, width, height, out, valid,
@@ -350,7 +350,7 @@ def project_fwd_kernel(
             valid[i] = True
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def project_bwd_kernel(
     ids, means, log_scales, quats, logit_op, sh0, sh_rest, sh_degree, Rcw, tcw, campos, cam, dilation,
     compensate, grad_out, g_means, g_log_scales, g_quats, g_logit, g_sh0, g_sh_rest,
@@ -507,7 +507,7 @@ def project_bwd_kernel(
             g_means[i, 2] = gmz
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=False)
 def gather_visible_kernel(out, ids, uv, conic, opacity, color, depth, cov2d):  # pragma: no cover - compiled
     """Rows ``ids [V]`` of :func:`project_fwd_kernel`'s ``out [N, PROJ_COLS]`` (float64) into its six
     differentiable outputs, each ``[V, ...]`` in the scene's dtype: ``uv [V, 2]``, ``conic [V, 3]``, ``opacity

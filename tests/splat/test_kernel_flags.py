@@ -1,0 +1,95 @@
+"""Every compiled function of the 3DGS kernels gets the same code whichever kernel compiles it first.
+
+numba compiles a helper on its first call with the fastmath flags of the caller that made that call, unless the
+helper states its own, and keeps (and caches on disk) that one compilation for every later caller. The fused
+inference kernels use fastmath, the training kernels do not: helpers shared by both must state ``fastmath=False`` or
+the training's arithmetic depends on which kernel a process (or an old ``__pycache__``) compiled first."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from numba.core.registry import CPUDispatcher
+
+MODULES = ["umi_aug.splat._kernels", "umi_aug.splat._project_kernels", "umi_aug.splat._loss_kernels",
+           "umi_aug.splat._optim_kernels"]
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _dispatchers():
+    for name in MODULES:
+        mod = importlib.import_module(name)
+        for attr, obj in vars(mod).items():
+            if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == name:
+                yield f"{name}.{attr}", obj
+
+
+def test_every_function_not_inlined_states_its_fastmath():
+    found = dict(_dispatchers())
+    assert len(found) > 40
+    missing = [n for n, d in found.items()
+               if d.targetoptions.get("inline") != "always" and "fastmath" not in d.targetoptions]
+    assert missing == []
+    # the fused kernels keep their flags; every other kernel states none
+    fused = {n for n, d in found.items() if d.targetoptions.get("fastmath")}
+    assert fused == {"umi_aug.splat._kernels.project_kernel", "umi_aug.splat._kernels.raster_fwd_fused_kernel"}
+
+
+_PROBE = r"""
+import json, sys
+import numpy as np
+from umi_aug.splat import _kernels as K
+first = sys.argv[1]
+rng = np.random.default_rng(0)
+pts = rng.normal(size=(64, 3)) * [0.3, 0.3, 1.0] + [0.0, 0.0, 0.2]   # some behind the camera, some past 90 deg
+cam = (400.0, 410.0, 320.0, 240.0, 0.05, -0.01, 0.002, -0.0003)
+
+@__import__("numba").njit(fastmath={"nsz", "arcp", "contract", "afn"})
+def fused_caller(p, c):
+    out = np.empty((p.shape[0], 10))
+    for i in range(p.shape[0]):
+        ok, th, u, v, a, b, d, e, f, g = K._kb_project_jacobian(p[i, 0], p[i, 1], p[i, 2], c[0], c[1], c[2], c[3],
+                                                               c[4], c[5], c[6], c[7])
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4] = 1.0 if ok else 0.0, th, u, v, a
+        out[i, 5], out[i, 6], out[i, 7], out[i, 8], out[i, 9] = b, d, e, f, g
+    return out
+
+@__import__("numba").njit
+def plain_caller(p, c):
+    out = np.empty((p.shape[0], 10))
+    for i in range(p.shape[0]):
+        ok, th, u, v, a, b, d, e, f, g = K._kb_project_jacobian(p[i, 0], p[i, 1], p[i, 2], c[0], c[1], c[2], c[3],
+                                                               c[4], c[5], c[6], c[7])
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4] = 1.0 if ok else 0.0, th, u, v, a
+        out[i, 5], out[i, 6], out[i, 7], out[i, 8], out[i, 9] = b, d, e, f, g
+    return out
+
+c = np.array(cam)
+if first == "fused":
+    fused_caller(pts, c)
+out = plain_caller(pts, c)
+llvm = "".join(K._kb_project_jacobian.inspect_llvm().values())
+print(json.dumps({"values": out.tobytes().hex(), "contract": llvm.count(" contract ") + llvm.count(" fast ")}))
+"""
+
+
+@pytest.mark.parametrize("first", ["fused"])
+def test_a_fastmath_caller_first_leaves_the_shared_helper_exact(tmp_path, first):
+    """In fresh processes with an empty numba cache: a fastmath caller compiling ``_kb_project_jacobian`` first leaves
+    it without contracted or fast instructions, and a plain caller then gets the same bits as in a process where
+    it came first (before the fix the first order gave fused multiply-adds)."""
+    runs = {}
+    for order in (first, "plain"):
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / order), PYTHONPATH=str(ROOT))
+        res = subprocess.run([sys.executable, "-c", _PROBE, order], capture_output=True, text=True, env=env,
+                             cwd=ROOT)
+        assert res.returncode == 0, res.stderr[-2000:]
+        runs[order] = json.loads(res.stdout.strip().splitlines()[-1])
+    assert runs[first]["contract"] == 0 and runs["plain"]["contract"] == 0
+    assert runs[first]["values"] == runs["plain"]["values"]
