@@ -5,6 +5,7 @@ order, and its multi-threaded triangulation moved the points in their last bits.
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import cv2
@@ -41,14 +42,31 @@ def test_known_pose_sfm_on_real_frames_is_deterministic(tmp_path):
     names = [f"ep/{p.name}" for p in paths]
     # 2 threads (the default; extraction in 2 blocks, recon.colmap_blocks) three times, then 1 thread
     cfgs = [SfmConfig(mode="known_poses", num_threads=2)] * 3 + [SfmConfig(mode="known_poses", num_threads=1)]
-    runs = [run_sfm(paths, names, intr, tmp_path / f"w{k}", cfg, T_world_cam=T[idx], masks=feature_mask(intr))
+    # the second run starts, right before its triangulation, a thread that imports and computes in Python while
+    # COLMAP triangulates (what a dataset scene does: augment.prefetch); the cloud must not notice
+    calls, threads = [], []
+
+    def busy():
+        def work():
+            import importlib
+            importlib.import_module("umi_aug.augment.prefetch")
+            sum(i * i for i in range(2_000_000))
+
+        calls.append(1)
+        threads.append(threading.Thread(target=work))
+        threads[-1].start()
+
+    runs = [run_sfm(paths, names, intr, tmp_path / f"w{k}", cfg, T_world_cam=T[idx], masks=feature_mask(intr),
+                    before_mapping=busy if k == 1 else None)
             for k, cfg in enumerate(cfgs)]
+    threads[0].join()
+    assert calls == [1]
     assert len(runs[0].points) > 100
     for r in runs[1:]:
         assert r.points.shape == runs[0].points.shape
         assert r.points.tobytes() == runs[0].points.tobytes()
         assert r.errors_px.tobytes() == runs[0].errors_px.tobytes()
-    # the matches verified by the known poses (a dataset scene's default): the same bytes twice, and a cloud
+    # the matches verified by the known poses (an option, off by default): the same bytes twice, and a cloud
     by_poses = [run_sfm(paths, names, intr, tmp_path / f"v{k}", SfmConfig(mode="known_poses", num_threads=2,
                                                                            known_pose_verification=True),
                         T_world_cam=T[idx], masks=feature_mask(intr)) for k in range(2)]

@@ -82,8 +82,9 @@ MIN_EPISODE_FRAMES: int = 16
 #: Cloud points further than this outside the reachable region are left out of the SDF (metres).
 SDF_CROP_M: float = 0.15
 #: What a dataset scene's stages after the triangulation import (on a thread while it runs: _stage_scene):
-#: the cloud clean-up's open3d and the distance field's KD-tree; with renders, torch and the 3DGS trainer.
-_LATER_MODULES: tuple[str, ...] = ("open3d", "scipy.spatial")
+#: the cloud clean-up's open3d, the distance field's KD-tree and the pictures' matplotlib (not pyplot, which picks a
+#: backend on import: augment.pictures sets Agg first); with renders, torch and the 3DGS trainer.
+_LATER_MODULES: tuple[str, ...] = ("open3d", "scipy.spatial", "matplotlib.figure", "matplotlib.backends.backend_agg")
 _SPLAT_MODULES: tuple[str, ...] = ("torch", "umi_aug.splat.train", "umi_aug.splat.train_session",
                                    "umi_aug.splat.renderer", "umi_aug.splat.compose")
 #: Groups whose heavy members (SDF, Gaussians, problems) stay loaded per process.
