@@ -12,7 +12,7 @@ import numpy as np
 
 from umi_aug.recon.cloud import SceneCloud
 from umi_aug.recon.constants import SDF_SIGN_NEIGHBOURS
-from umi_aug.recon.sdf_grid import sign_vote
+from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf, sign_vote
 
 
 def _reference_sdf(points_world: np.ndarray, cloud: SceneCloud, h: float, sign_neighbours: int = SDF_SIGN_NEIGHBOURS,
@@ -52,12 +52,10 @@ def _reference_sdf(points_world: np.ndarray, cloud: SceneCloud, h: float, sign_n
 
 
 def _reference_unsigned_sdf(cloud: SceneCloud, lo: np.ndarray, hi: np.ndarray, voxel: float,
-                            inflation: float = 0.0):
+                            inflation: float = 0.0) -> VoxelSDF:
     """Reference of ``build_scene_sdf(..., signed=False)``: the signed field (every sign vote taken) folded to its
     magnitude, ``|v + √3/2·h| − √3/2·h`` per node (how a dataset scene's unsigned field was made before session 40).
     Returns a :class:`~umi_aug.recon.sdf_grid.VoxelSDF`."""
-    from umi_aug.recon.sdf_grid import VoxelSDF, build_scene_sdf
-
     sdf = build_scene_sdf(cloud, lo, hi, voxel, inflation)
     half = np.sqrt(3.0) / 2.0 * sdf.voxel
     return VoxelSDF(np.abs(sdf.values + half) - half, sdf.origin, sdf.voxel, sdf.inflation)
