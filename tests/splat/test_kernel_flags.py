@@ -84,3 +84,44 @@ def test_a_fastmath_caller_first_leaves_the_shared_helper_exact(tmp_path):
         runs[order] = json.loads(res.stdout.strip().splitlines()[-1])
     assert runs["fused"]["contract"] == 0 and runs["plain"]["contract"] == 0
     assert runs["fused"]["values"] == runs["plain"]["values"]
+
+
+def test_every_kernel_is_stamped_with_every_kernel_source(tmp_path, monkeypatch):
+    """Each kernel-module function's numba cache is located by :mod:`umi_aug.splat._numba_cache`, whose stamp changes
+    when any file of ``KERNEL_SOURCES`` changes (not only the function's own file); the kernel modules import names
+    from no ``umi_aug`` module outside that set; a function of another file keeps numba's own locator."""
+    import ast
+
+    import numba
+    from numba.core import caching
+
+    from umi_aug.splat import _numba_cache as NC
+
+    for name, d in _dispatchers():
+        assert isinstance(d._cache._impl._locator, NC.KernelInTreeCacheLocator), name
+    sources = {p.resolve() for p in NC.KERNEL_SOURCES}
+    assert all(p.exists() for p in sources)
+    for name in MODULES:
+        tree = ast.parse(Path(importlib.import_module(name).__file__).read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("umi_aug.") \
+                    and node.module != "umi_aug.splat._numba_cache":  # the locators themselves compile nothing
+                dep = ROOT / (node.module.replace(".", "/") + ".py")
+                assert dep.resolve() in sources, f"{name} imports {node.module}, not in KERNEL_SOURCES"
+    from umi_aug.splat import _optim_kernels as OK
+
+    loc = NC.KernelInTreeCacheLocator.from_function(OK._sigmoid.py_func, OK.__file__)
+    before = loc.get_source_stamp()
+    assert loc.get_source_stamp() == before
+    extra = tmp_path / "constants_of_a_helper.py"
+    extra.write_text("A = 1\n")
+    monkeypatch.setattr(NC, "KERNEL_SOURCES", NC.KERNEL_SOURCES + (extra,))
+    one = loc.get_source_stamp()
+    extra.write_text("A = 2\n")  # another file of the set edited: a new stamp
+    assert one != before and loc.get_source_stamp() != one
+    other = tmp_path / "elsewhere.py"
+    other.write_text("def f(x):\n    return x\n")
+    ns: dict = {}
+    exec(compile(other.read_text(), str(other), "exec"), ns)
+    assert NC.KernelInTreeCacheLocator.from_function(ns["f"], str(other)) is None
+    assert type(numba.njit(cache=True)(ns["f"])._cache._impl._locator) is caching.InTreeCacheLocator

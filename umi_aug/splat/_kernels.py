@@ -64,8 +64,10 @@ from umi_aug.splat._constants import (
     TILE_SIZE,
     TRANSMITTANCE_THRESHOLD,
 )
+from umi_aug.splat._numba_cache import install as install_kernel_cache
 
 quiet_numba_threading_warning()
+install_kernel_cache()  # before the first @njit(cache=True): stamped with every kernel source
 
 #: Number of columns of the packed per-Gaussian array.
 PACKED_COLS = 16

@@ -28,8 +28,10 @@ import numpy as np
 from numba import njit, prange
 
 from umi_aug.runtime import quiet_numba_threading_warning
+from umi_aug.splat._numba_cache import install as install_kernel_cache
 
 quiet_numba_threading_warning()
+install_kernel_cache()  # before the first @njit(cache=True): stamped with every kernel source
 
 
 @njit(cache=True, parallel=True, fastmath=False)

@@ -38,6 +38,9 @@ from umi_aug.splat._constants import (
     SH_C2,
     SH_C3,
 )
+from umi_aug.splat._numba_cache import install as install_kernel_cache
+
+install_kernel_cache()  # before the first @njit(cache=True): stamped with every kernel source
 
 #: Columns of the projection output / its gradient (see the module docstring).
 PROJ_COLS = 13
