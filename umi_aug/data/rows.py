@@ -66,7 +66,8 @@ class DecodedChunks:
             return a
 
     def put(self, key: tuple, chunk: np.ndarray) -> None:
-        a = np.array(chunk, copy=True)
+        """Keep ``chunk`` (a freshly decoded array nothing else writes to: not copied; kept as a read-only view)."""
+        a = chunk.view()
         a.flags.writeable = False
         if a.nbytes > self.max_bytes:
             return
