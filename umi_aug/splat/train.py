@@ -15,7 +15,8 @@ MCMC needs no screen-space gradient statistics or opacity resets (which cost sev
 each, a large share of a 3-5k-step CPU run) and works from random initialisation.
 
 Outputs in ``out_dir``: ``scene.ply`` (INRIA layout), ``checkpoint.pt`` (atomic; resumable), ``metrics.json``,
-``contact_sheet.png`` (held-out GT | render | |error|), ``curve.png`` (PSNR / SSIM vs iteration and seconds).
+``contact_sheet.png`` (held-out GT | render | |error|), ``curve.png`` (PSNR / SSIM vs iteration and seconds; a run
+evaluated at two iterations or more).
 """
 
 from __future__ import annotations
@@ -425,8 +426,8 @@ def train_splat(
         init_xyz: initial Gaussian centres (SfM points, or random in a box), world frame, metres.
         init_rgb: their colours in [0, 1] (random when None).
         cfg: :class:`SplatTrainConfig`.
-        out_dir: output folder (scene.ply, checkpoint.pt, metrics.json, contact_sheet.png, curve.png); None =
-            nothing written, no resume.
+        out_dir: output folder (scene.ply, checkpoint.pt, metrics.json, contact_sheet.png, curve.png when evaluated
+            at two iterations or more); None = nothing written, no resume.
         resume: continue from ``out_dir/checkpoint.pt`` if present (to ``cfg.iterations``; a finished run
             returns at once; raising ``cfg.iterations`` continues a finished run, the position learning-rate
             decay is then re-based on the new count; other config changes raise). False: start over (an existing

@@ -1,6 +1,7 @@
 """Outputs of a finished training run: ``metrics.json``, ``contact_sheet.png`` (one row per held-out view:
 ground truth | render | |error| x ``ERROR_GAIN``, masked-out pixels dimmed) and ``curve.png`` (held-out and training
-PSNR / SSIM against iteration and against training seconds). All writes are atomic."""
+PSNR / SSIM against iteration and against training seconds; only for a run evaluated at two iterations or more: a
+dataset scene's run, evaluated once after its last step, has no curve to draw). All writes are atomic."""
 
 from __future__ import annotations
 
@@ -22,6 +23,8 @@ __all__ = ["write_outputs", "config_dict", "contact_sheet", "plot_curve", "ERROR
 ERROR_GAIN: float = 4.0
 #: Brightness of masked-out pixels in the sheet.
 MASK_DIM: float = 0.35
+#: ``curve.png`` is drawn for a history of at least this many evaluations.
+MIN_CURVE_POINTS: int = 2
 
 
 def _json_safe(x):
@@ -89,7 +92,8 @@ def config_dict(cfg: Any) -> dict:
 @torch.no_grad()
 def write_outputs(out: Path, result: Any, cfg: Any, intr, data: Any,
                   sheet_idx: Sequence[int], deg: int, scale: float, n_train: int, n_held: int) -> None:
-    """Write ``metrics.json``, ``contact_sheet.png`` and ``curve.png`` into ``out``.
+    """Write ``metrics.json``, ``contact_sheet.png`` and ``curve.png`` into ``out`` (``curve.png`` only for a
+    history of two evaluations or more; a stale one from an earlier run in ``out`` is removed otherwise).
 
     ``result``: :class:`umi_aug.splat.train.SplatTrainResult`; ``cfg``: its ``SplatTrainConfig``; ``data``: the
     trainer's views (``poses``, ``images``, ``masks``, ``names``)."""
@@ -103,7 +107,10 @@ def write_outputs(out: Path, result: Any, cfg: Any, intr, data: Any,
         rows.append((data.images[i].numpy(), rgb, data.masks[i].numpy()))
     if rows:
         contact_sheet(rows, out / "contact_sheet.png")
-    plot_curve(result.history, out / "curve.png")
+    if len(result.history) >= MIN_CURVE_POINTS:
+        plot_curve(result.history, out / "curve.png")
+    else:  # one point is no curve (matplotlib's 2 x 2 figure cost ~0.5-1 s of a dataset scene's stage)
+        (out / "curve.png").unlink(missing_ok=True)
     metrics = {
         "heldout_psnr": result.heldout_psnr, "heldout_ssim": result.heldout_ssim,
         "n_gaussians": result.gaussians.n, "n_train_views": n_train, "n_heldout_views": n_held,
