@@ -127,3 +127,32 @@ def test_float32_exp_accuracy():
     _fexp_array(low, out)
     assert np.all(out == out[0]) and out[0] == pytest.approx(math.exp(K.FEXP_MIN), rel=1e-6)
     assert out[0] < 1.0 / 255 / 1000
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_pack_kernel_equals_numpy(rng, dtype):
+    """The rasteriser's rows from the projection's outputs: ``pack_kernel`` gives the bytes of the zero fill,
+    column copies and ``footprint_kernel`` it replaces (degenerate and negative conics, opacities under the alpha
+    threshold, NaN; no row; contiguous outputs and strided column views of one buffer)."""
+    import torch
+
+    from umi_aug.splat.renderer import _pack, _pack_reference
+
+    tdt = torch.float32 if dtype == np.float32 else torch.float64
+    for V in (0, 1, int(rng.integers(50, 400))):
+        L = rng.normal(size=(V, 2, 2)) * rng.uniform(0.3, 20.0, (V, 1, 1))
+        inv = np.linalg.inv(L @ L.transpose(0, 2, 1) + 1e-3 * np.eye(2))
+        conic = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+        conic[1::7, 1] = np.sqrt(np.abs(conic[1::7, 0] * conic[1::7, 2])) * 1.5  # det < 0
+        conic[2::11, 0] = -1.0
+        conic[3::13, 2] = np.nan
+        opacity = rng.uniform(0.0, 1.0, V)
+        opacity[::5] = 1e-4  # under the alpha threshold: no footprint
+        cols = [rng.uniform(-50.0, 300.0, (V, 2)), conic, opacity, rng.random((V, 3)), rng.uniform(0.05, 5.0, V)]
+        separate = [torch.from_numpy(np.ascontiguousarray(c)).to(tdt) for c in cols]
+        buf = torch.from_numpy(np.concatenate([c.reshape(V, w) for c, w in zip(cols, (2, 3, 1, 3, 1))], axis=1)).to(tdt)
+        strided = [buf[:, 0:2], buf[:, 2:5], buf[:, 5], buf[:, 6:9], buf[:, 9]]
+        for parts in (separate, strided):
+            want = _pack_reference(*parts, dtype)
+            got = _pack(*parts, dtype)
+            assert got.dtype == want.dtype and got.shape == (V, K.PACKED_COLS) and got.tobytes() == want.tobytes()

@@ -274,3 +274,24 @@ def test_gather_visible_kernel_equals_numpy(rng, dtype):
         assert len(got) == len(ProjectGaussians.COLUMNS)
         for g, w in zip(got, want):
             assert g.dtype == w.dtype and g.shape == w.shape and g.tobytes() == w.tobytes()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_grad_out_kernel_equals_numpy(rng, dtype):
+    """The backward's output gradients gathered into the kernel's float64 layout: the numba pass gives the bytes of
+    the numpy zero fill + casting copies it replaces, for the renderer's strided column views of one buffer,
+    separate contiguous tensors, outputs without a gradient (None: zeros), NaN/inf/signed zeros/denormals kept."""
+    from umi_aug.splat.project import ProjectGaussians, _grad_out, _grad_out_reference
+
+    V = int(rng.integers(1, 700))
+    base = torch.from_numpy(rng.normal(size=(V, 13)) * 10.0 ** rng.integers(-45, 30, size=(V, 13))).to(dtype)
+    base[::5, 1] = float("nan")
+    base[::7, 3] = -0.0
+    base[::9, 9] = float("-inf")
+    strided = [base[:, a:b] if b - a > 1 else base[:, a] for a, b in ProjectGaussians.COLUMNS]
+    separate = [x.clone() for x in strided]
+    for grads in (strided, separate, strided[:5] + [None], [None, separate[1], None, strided[3], None, None],
+                  [None] * 5 + [separate[5]]):
+        want = _grad_out_reference(grads, V)
+        got = _grad_out(grads, V, np.float32 if dtype == torch.float32 else np.float64)
+        assert got.dtype == np.float64 and got.shape == (V, PK.PROJ_COLS) and got.tobytes() == want.tobytes()

@@ -349,16 +349,39 @@ def _write_footprint(packed, i, sxx, sxy, syy, det):  # pragma: no cover - compi
             packed[i, col] = 0.0
 
 
+@njit(cache=True, inline="always")
+def _footprint_from_conic(packed, i):  # pragma: no cover - compiled
+    """Columns 10..15 of row ``i`` from its conic (columns 2..4) and opacity (column 5)."""
+    a, b, c = np.float64(packed[i, 2]), np.float64(packed[i, 3]), np.float64(packed[i, 4])
+    detc = a * c - b * b
+    if detc > 0.0 and a > 0.0 and c > 0.0:
+        _write_footprint(packed, i, c / detc, -b / detc, a / detc, 1.0 / detc)
+    else:
+        _write_footprint(packed, i, 0.0, 0.0, 0.0, 0.0)
+
+
 @njit(parallel=True, cache=True, fastmath=False)
 def footprint_kernel(packed):  # pragma: no cover - compiled
     """Fill columns 10..15 of every row from its conic (columns 2..4) and opacity (column 5)."""
     for i in prange(packed.shape[0]):
-        a, b, c = np.float64(packed[i, 2]), np.float64(packed[i, 3]), np.float64(packed[i, 4])
-        detc = a * c - b * b
-        if detc > 0.0 and a > 0.0 and c > 0.0:
-            _write_footprint(packed, i, c / detc, -b / detc, a / detc, 1.0 / detc)
-        else:
-            _write_footprint(packed, i, 0.0, 0.0, 0.0, 0.0)
+        _footprint_from_conic(packed, i)
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def pack_kernel(uv, conic, opacity, color, depth, packed):  # pragma: no cover - compiled
+    """Every row of ``packed [V, PACKED_COLS]``: columns 0..9 from the projection's outputs ``uv [V, 2]``, ``conic
+    [V, 3]``, ``opacity [V]``, ``color [V, 3]``, ``depth [V]`` (the dtype of ``packed``), then the footprint
+    columns as :func:`footprint_kernel` (one parallel pass instead of a zero fill, five strided copies and that
+    kernel)."""
+    for i in prange(packed.shape[0]):
+        packed[i, 0] = uv[i, 0]
+        packed[i, 1] = uv[i, 1]
+        for c in range(3):
+            packed[i, 2 + c] = conic[i, c]
+            packed[i, 6 + c] = color[i, c]
+        packed[i, 5] = opacity[i]
+        packed[i, 9] = depth[i]
+        _footprint_from_conic(packed, i)
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -510,6 +510,34 @@ def project_bwd_kernel(
             g_means[i, 2] = gmz
 
 
+@njit(cache=True, inline="always")
+def _put_grad(out, k, col, g):  # pragma: no cover - compiled
+    """Row ``k`` of ``g [V, w]`` (float32 or float64) into ``out[k, col:col + w]`` as float64; zeros when ``g``
+    has no rows (an output that got no gradient)."""
+    w = g.shape[1]
+    if g.shape[0] == 0:
+        for c in range(w):
+            out[k, col + c] = 0.0
+    else:
+        for c in range(w):
+            out[k, col + c] = g[k, c]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def gather_grad_out_kernel(g_uv, g_conic, g_opacity, g_color, g_depth, g_cov2d, out):  # pragma: no cover
+    """The gradients of the six differentiable outputs, ``[V, w]`` each in the scene's dtype (any strides; a
+    ``[0, w]`` array for an output that got no gradient), into ``out [V, PROJ_COLS]`` float64, the layout
+    :func:`project_bwd_kernel` reads: the same values as numpy's ``out[:, a:b] = g`` (float32 to float64 is
+    exact), in one parallel pass instead of a zero fill and six strided casting copies."""
+    for k in prange(out.shape[0]):
+        _put_grad(out, k, 0, g_uv)
+        _put_grad(out, k, 2, g_conic)
+        _put_grad(out, k, 5, g_opacity)
+        _put_grad(out, k, 6, g_color)
+        _put_grad(out, k, 9, g_depth)
+        _put_grad(out, k, 10, g_cov2d)
+
+
 @njit(parallel=True, cache=True, fastmath=False)
 def gather_visible_kernel(out, ids, uv, conic, opacity, color, depth, cov2d):  # pragma: no cover - compiled
     """Rows ``ids [V]`` of :func:`project_fwd_kernel`'s ``out [N, PROJ_COLS]`` (float64) into its six

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -250,6 +251,29 @@ def _gather_visible_numpy(out: np.ndarray, ids: np.ndarray, dtype) -> list[np.nd
     return [vis[:, a:b].astype(dtype) if b - a > 1 else vis[:, a].astype(dtype) for a, b in ProjectGaussians.COLUMNS]
 
 
+def _grad_views(grads: Sequence[Tensor | None], V: int, dtype) -> list[np.ndarray]:
+    """The output gradients as ``[V, w]`` numpy views (no copy; ``[0, w]`` for one that is None)."""
+    return [np.empty((0, b - a), dtype=dtype) if g is None else g.detach().cpu().numpy().reshape(V, b - a)
+            for g, (a, b) in zip(grads, ProjectGaussians.COLUMNS)]
+
+
+def _grad_out(grads: Sequence[Tensor | None], V: int, dtype) -> np.ndarray:
+    """``[V, PROJ_COLS]`` float64: the six output gradients where :func:`PK.project_bwd_kernel` reads them
+    (:func:`PK.gather_grad_out_kernel`; reference :func:`_grad_out_reference`)."""
+    out = np.empty((V, PK.PROJ_COLS), dtype=np.float64)
+    PK.gather_grad_out_kernel(*_grad_views(grads, V, dtype), out)
+    return out
+
+
+def _grad_out_reference(grads: Sequence[Tensor | None], V: int) -> np.ndarray:
+    """:func:`_grad_out` in numpy (what the backward did before the kernel; ``tests/splat/test_project_fast.py``)."""
+    out = np.zeros((V, PK.PROJ_COLS), dtype=np.float64)
+    for g, (a, b) in zip(grads, ProjectGaussians.COLUMNS):
+        if g is not None:
+            out[:, a:b] = g.detach().cpu().numpy().reshape(V, b - a)
+    return out
+
+
 class ProjectGaussians(torch.autograd.Function):
     """:func:`project_gaussians` as numba kernels: ``forward(means, log_scales, quats_wxyz, logit_opacities, sh0,
     sh_rest, setup)`` returns ``(means2d [V, 2], conics [V, 3], opacities [V], colors [V, 3], depths [V],
@@ -289,11 +313,8 @@ class ProjectGaussians(torch.autograd.Function):
         tensors = ctx.saved_tensors
         arrs = [_np(t) for t in tensors]
         grads = [np.zeros(a.shape, dtype=a.dtype) for a in arrs]
-        given = [(g, cols) for g, cols in zip(grads_out[:-1], ProjectGaussians.COLUMNS) if g is not None]
-        if given and ctx.ids.size:
-            g_out = np.zeros((ctx.ids.size, PK.PROJ_COLS), dtype=np.float64)
-            for g, (a, b) in given:
-                g_out[:, a:b] = g.detach().cpu().numpy().reshape(ctx.ids.size, b - a)
+        if any(g is not None for g in grads_out[:-1]) and ctx.ids.size:
+            g_out = _grad_out(grads_out[:-1], ctx.ids.size, arrs[0].dtype)
             PK.project_bwd_kernel(
                 ctx.ids, *arrs, su.sh_degree, su.R_cw, su.t_cw, su.campos, su.cam, su.dilation, su.compensate,
                 g_out, *grads,

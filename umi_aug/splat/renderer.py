@@ -275,6 +275,21 @@ def rasterize_packed_backward(
 
 
 def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor, dtype) -> np.ndarray:
+    """The rasteriser's rows ``[V, PACKED_COLS]`` in ``dtype`` (the projection's outputs, then each footprint):
+    :func:`K.pack_kernel`; reference :func:`_pack_reference`."""
+    parts = [t.detach().cpu().numpy() for t in (means2d, conics, opacities, colors, depths)]
+    if any(p.dtype != dtype for p in parts):
+        return _pack_reference(means2d, conics, opacities, colors, depths, dtype)
+    packed = np.empty((means2d.shape[0], K.PACKED_COLS), dtype=dtype)
+    with _parallel(4 * packed.shape[0], 256):
+        K.pack_kernel(*parts, packed)
+    return packed
+
+
+def _pack_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
+                    dtype) -> np.ndarray:
+    """:func:`_pack` in numpy: a zero fill, the columns copied (cast to ``dtype``), then
+    :func:`K.footprint_kernel` (``tests/splat/test_kernels.py``)."""
     V = means2d.shape[0]
     packed = np.zeros((V, K.PACKED_COLS), dtype=dtype)
     packed[:, 0:2] = means2d.detach().cpu().numpy()
