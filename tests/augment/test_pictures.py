@@ -5,9 +5,17 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
-from umi_aug.augment.pictures import (SHEET_CAPTION_PX, SHEET_GAP_PX, SHEET_TITLE_PX, contact_sheet,
-                                      sheet_columns, sheet_tile_origin)
+from umi_aug.augment.pictures import (
+    SHEET_CAPTION_PX,
+    SHEET_GAP_PX,
+    SHEET_TITLE_PX,
+    contact_sheet,
+    sheet_columns,
+    sheet_tile_origin,
+)
+from umi_aug.errors import AugmentError
 
 
 def _longest_blank_run(rows_blank: np.ndarray) -> int:
@@ -45,3 +53,10 @@ def test_contact_sheet_tiles_are_the_source_frames(tmp_path):
         assert _longest_blank_run(blank[:first_frame_row]) < SHEET_TITLE_PX, (n_rows, first_frame_row)
         assert not blank[:SHEET_TITLE_PX].all()  # the title is drawn
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sheet2.png", "sheet8.png"]  # no temporary left
+
+
+def test_contact_sheet_refuses_frames_of_another_size(tmp_path):
+    eps = [np.zeros((5, 32, 32, 3), np.uint8), np.zeros((5, 32, 40, 3), np.uint8)]
+    with pytest.raises(AugmentError, match=r"row 1 \(ep 1\) frame 0 has shape \(32, 40, 3\)"):
+        contact_sheet(eps, tmp_path / "bad.png")
+    assert not any(tmp_path.iterdir())  # nothing written

@@ -109,6 +109,8 @@ def test_evaluating_only_at_the_end_trains_the_same_scene(problem, tmp_path, rng
     full = train_splat(views, intr, init, None, cfg, tmp_path / "a", progress=False)
     assert [h["iteration"] for h in full.history] == [0, 20, 40]
     once = replace(cfg, eval_every=0, eval_at_start=False)
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "curve.png").write_bytes(b"an earlier run's curve")
     end = train_splat(views, intr, init, None, once, tmp_path / "b", progress=False)
     assert [h["iteration"] for h in end.history] == [40]
     assert end.gaussians == full.gaussians

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from umi_aug.errors import AugmentError
 from umi_aug.io_utils import atomic_path
 
 __all__ = ["contact_sheet", "sheet_columns", "sheet_tile_origin", "pyplot", "save_figure"]
@@ -100,7 +101,11 @@ def contact_sheet(
         last_new = n_t - 1 if splice_indices is None else int(splice_indices[e])
         for j, k in enumerate(sheet_columns(n_t, last_new, n_cols)):
             x, y = sheet_tile_origin(e, j, H, W, left)
-            sheet[y:y + H, x:x + W] = np.asarray(frames[k])[..., :3]
+            frame = np.asarray(frames[k])
+            if frame.shape[:2] != (H, W) or frame.ndim != 3 or frame.shape[2] < 3:
+                raise AugmentError(f"contact_sheet {path}: row {e} ({names[e]}) frame {k} has shape {frame.shape}; "
+                                 f"every frame must be [{H}, {W}, 3] like the first")
+            sheet[y:y + H, x:x + W] = frame[..., :3]
             tag = " splice" if splice_indices is not None and k == last_new else (" end" if k == n_t - 1 else "")
             cap = f"t={k}{tag}"
             _put_text(sheet, cap, x + (W - _text_width(cap, SHEET_FONT_SCALE)) // 2, y - 5, SHEET_FONT_SCALE)
