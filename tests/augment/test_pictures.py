@@ -32,8 +32,7 @@ def test_sheet_columns_end_at_the_splice_then_the_last_frame():
     assert sheet_columns(1, 0, 3) == [0, 0, 0]
 
 
-def test_contact_sheet_tiles_are_the_source_frames(tmp_path):
-    rng = np.random.default_rng()
+def test_contact_sheet_tiles_are_the_source_frames(tmp_path, rng):
     for n_rows, (H, W) in ((2, (84, 84)), (8, (60, 96))):
         eps = [rng.integers(0, 255, (int(rng.integers(20, 40)), H, W, 3), dtype=np.uint8) for _ in range(n_rows)]
         splice = [int(rng.integers(1, len(e) - 1)) for e in eps]
