@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from umi_aug.errors import AugmentError
-from umi_aug.io_utils import atomic_path
+from umi_aug.io_utils import atomic_path, atomic_write_bytes
 
 __all__ = ["contact_sheet", "sheet_columns", "sheet_tile_origin", "pyplot", "save_figure"]
 
@@ -112,9 +112,7 @@ def contact_sheet(
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(sheet[..., ::-1]))
     if not ok:
         raise OSError(f"PNG encoding failed for {path}")
-    with atomic_path(path) as tmp:
-        Path(tmp).write_bytes(buf.tobytes())
-    return Path(path)
+    return atomic_write_bytes(path, buf.tobytes())
 
 
 def _frame_size(episodes: list[np.ndarray]) -> tuple[int, int]:
