@@ -28,14 +28,19 @@ Settings (``--settings``):
   tag frame and the table), with the shell: what pooling the episodes of one place does (issue #34 item 2).
 * ``one demo, 3DGS schedule before (...)``: the default's scene trained as a dataset's scenes were before
   2026-11-29: 1,200 steps (first half at half size) at the trainer's learning rates and growth, where the default is
-  600 steps with ``DATASET_SPLAT_SCHEDULE`` (``umi_aug/augment/splat_defaults.py``; ``docs/real_scale.md`` 1f).
+  550 steps (600 before session 42) with ``DATASET_SPLAT_SCHEDULE`` (``umi_aug/augment/splat_defaults.py``;
+  ``docs/real_scale.md`` 1f).
 * ``one demo, pose pairs (...)``: the default before session 38: the known-pose triangulation also matches every
   two frames within 0.25 m and 45° (``DatasetInput.sfm_pose_pairs``; the default matches only each frame's
   sequential neighbours and the loop grid, a third less triangulation time on the real episode,
   ``docs/real_scale.md`` 1i).
 * ``two demos pooled, pose pairs (...)``: the pooled scene as before session 38, its triangulation also matching
   every two frames within 0.25 m and 45° (the loop grid alone also spans both demos).
-* ``one demo, 500 3DGS steps, growth from step 50 (600, 100)``: a shorter 3DGS run (``docs/real_scale.md`` 1j).
+* ``one demo, 500 3DGS steps, growth from step 50 (600, 100)``: a shorter 3DGS run (``docs/real_scale.md`` 1j;
+  the parentheses name the defaults of its time).
+* ``one demo, 500 3DGS steps (600)``: the same with the default's growth (``umi-aug augment --splat-iterations 500``).
+* ``one demo, 600 3DGS steps (550; the default before session 42)``: ``umi-aug augment --splat-iterations 600``
+  (``docs/real_scale.md`` 1m).
 * ``one demo, matches verified by the known poses (...)``: the known-pose triangulation keeps the matches that
   agree with the known poses instead of COLMAP's two-view RANSAC (``DatasetInput.sfm_known_pose_verification``;
   ``docs/real_scale.md`` 1j).
@@ -72,11 +77,15 @@ POSE_PAIRS = "one demo, pose pairs (the default before session 38)"
 POOLED_POSE_PAIRS = "two demos pooled, pose pairs (the default before session 38)"
 #: a shorter 3DGS run: 500 steps, the MCMC growth from step 50 (the default: 600 steps, growth from step 100)
 SHORT_500 = "one demo, 500 3DGS steps, growth from step 50 (600, 100)"
+#: a shorter 3DGS run with the default's growth: ``umi-aug augment --splat-iterations 500``
+SHORT_500_PLAIN = "one demo, 500 3DGS steps (600)"
+#: the 3DGS steps of a dataset's scene before session 42 (now 550)
+SPLAT_600 = "one demo, 600 3DGS steps (550; the default before session 42)"
 #: the triangulation's matches verified by the known poses instead of COLMAP's two-view RANSAC
 KNOWN_POSE_VERIFICATION = "one demo, matches verified by the known poses (COLMAP's RANSAC)"
 SETTINGS = ("one demo, no shell", "one demo (default)", DEFAULTS_BEFORE,
             "one demo, SfM every 2nd frame", "two demos pooled", "scan + demos", SCHEDULE_BEFORE, POSE_PAIRS,
-            POOLED_POSE_PAIRS, SHORT_500, KNOWN_POSE_VERIFICATION)
+            POOLED_POSE_PAIRS, SHORT_500, SHORT_500_PLAIN, SPLAT_600, KNOWN_POSE_VERIFICATION)
 
 
 def cone_ring_poses(T_ref: np.ndarray, radius: float, theta: float, n: int) -> np.ndarray:
@@ -125,13 +134,15 @@ def jittered_dataset(session: Path, out: Path, episodes: tuple[int, ...] = (0, 1
     return dst.save(out)
 
 
-def build(setting: str, session: Path, work: Path, iterations: int | None):
-    """Demo 0's assets of the setting (scene built or loaded from ``work``) and the seconds it took."""
+def build(setting: str, session: Path, work: Path, iterations: int | None, seed: int = 0):
+    """Demo 0's assets of the setting with root seed ``seed`` (``AugmentConfig.seed``: the 3DGS's view order,
+    relocation and noise, the background shell's points; scene built or loaded from ``work``) and the seconds it
+    took."""
     from umi_aug.augment.config import AugmentConfig, dataset_splat_stage
     from umi_aug.augment.dataset_source import DatasetInput, prepare_dataset
     from umi_aug.augment.sources.session import prepare_session
 
-    base = AugmentConfig()
+    base = AugmentConfig(seed=seed)
     t0 = time.perf_counter()
     if setting == "scan + demos":
         cfg = base if iterations is None else dataclasses.replace(
@@ -146,6 +157,8 @@ def build(setting: str, session: Path, work: Path, iterations: int | None):
         splat = dataclasses.replace(splat, iterations=iterations or 1200, extra={})
     if setting == SHORT_500:
         splat = dataclasses.replace(splat, iterations=500, extra={**splat.extra, "refine_start": 50})
+    if setting in (SHORT_500_PLAIN, SPLAT_600):
+        splat = dataclasses.replace(splat, iterations=500 if setting == SHORT_500_PLAIN else 600)
     cfg = dataclasses.replace(base, mode="freespace", splat=splat)
     pooled = setting in ("two demos pooled", POOLED_POSE_PAIRS)
     inp = DatasetInput(episodes=(0, 1) if pooled else (0,), scene_group=2 if pooled else 1,
@@ -195,6 +208,8 @@ def main() -> int:
     ap.add_argument("--thetas", nargs="+", type=float, default=[0, 10, 20, 30, 40, 50], help="degrees")
     ap.add_argument("--azimuths", type=int, default=8)
     ap.add_argument("--iterations", type=int, default=None, help="3DGS steps (default: each input kind's)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="root seed of the scenes (AugmentConfig.seed); one 3DGS seed moves a θ's PSNR by tenths")
     args = ap.parse_args()
 
     from umi_aug.augment.dataset_source import DatasetInput
@@ -226,7 +241,7 @@ def main() -> int:
     rows, sheet = [], {}
     for setting in args.settings:
         name = setting.split(" (")[0].replace(" ", "_").replace(",", "").replace("+", "and")
-        assets, secs = build(setting, session, work / name, args.iterations)
+        assets, secs = build(setting, session, work / name, args.iterations, args.seed)
         S = assets.cfg.image_size
         # the dataset path's camera poses are the zarr's TCP poses through T_cam_tcp: they must be the simulator's
         err = float(np.abs(assets.demos[0].T_world_cam[0] - T_ref).max())
@@ -266,7 +281,7 @@ def main() -> int:
         print(f"| {setting} | " + " | ".join(f"{r['psnr_db_median']:.2f} dB ({100 * r['uncovered_median']:.0f} %)"
                                              for r in cells) + " |")
     out = work / "far_views.json"
-    atomic_write_text(out, json.dumps({"session": str(session), "rows": rows}, indent=2) + "\n")
+    atomic_write_text(out, json.dumps({"session": str(session), "seed": args.seed, "rows": rows}, indent=2) + "\n")
     write_sheet(sheet, ["ground truth", *args.settings], work / "far_views.png")
     print(f"\n{out}\n{work / 'far_views.png'}")
     return 0

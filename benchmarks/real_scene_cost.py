@@ -14,9 +14,10 @@ setting's effect on quality is read from the seed-paired differences to the firs
 shows (mean and range over the seeds) once there is more than one seed.
 
 Each setting is one change to the defaults of ``umi-aug augment <dataset>`` (every 4th pre-grasp frame
-triangulated, matched with its sequential neighbours and the loop grid; 600 3DGS steps with the first half at half
+triangulated, matched with its sequential neighbours and the loop grid; 550 3DGS steps with the first half at half
 size, 30k Gaussians and the short schedule ``DATASET_SPLAT_SCHEDULE``, ``umi_aug/augment/splat_defaults.py``). Rows
-recorded earlier name changes to the defaults of their time: before session 38 the triangulation also matched every
+recorded earlier name changes to the defaults of their time: before session 42, 600 3DGS steps (so "3DGS 500 steps
+(600)" is 500 steps); before session 38 the triangulation also matched every
 two frames within 0.25 m and 45° (pose pairs); before 2026-11-29, 1,200 steps at the trainer's rates and growth;
 before 2026-11-27 (session 19), every 2nd frame and 600 full-size steps. ``splat.extra`` is laid over the schedule.
 The last five columns split a 3DGS step (ms per step, averaged over the run): the whole step, the rasteriser and the
@@ -52,6 +53,7 @@ SETTINGS: dict[str, dict[str, object]] = {
     "3DGS schedule before (1200 steps, the trainer's rates and growth)": {"splat.iterations": 1200,
                                                                           "splat.trainer_schedule": True},
     "3DGS 500 steps (600)": {"splat.iterations": 500},
+    "3DGS 600 steps (550; the default before session 42)": {"splat.iterations": 600},
     "3DGS 800 steps (600)": {"splat.iterations": 800},
     "before (every 2nd frame, 600 steps, full size)": {"inp.sfm_stride": 2, "inp.sfm_pose_pairs": True,
                                                        "splat.iterations": 600, "splat.coarse_downscale": 1,

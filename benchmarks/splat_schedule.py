@@ -74,6 +74,7 @@ SETTINGS: dict[str, dict[str, object]] = {
     "default": {},
     "default, 400 steps": {"splat.iterations": 400},
     "default, 500 steps": {"splat.iterations": 500},
+    "default, 550 steps": {"splat.iterations": 550},
     "default, coarse for 3/4 of the steps": {"splat.extra": {"coarse_fraction": 0.75}},
     "default, coarse for 2/3 of the steps": {"splat.extra": {"coarse_fraction": 2 / 3}},
     "default, 20k Gaussians (30k)": {"splat.max_gaussians": 20_000},

@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 def aug_splat_stage(a: AugConfig, plain: bool) -> SplatStageConfig:
     """The 3DGS stage (``umi_aug.augment.SplatStageConfig``) of ``aug.splat_*``: a field left None takes umi-aug's
     default for the input, exactly as ``umi-aug augment`` without 3DGS flags trains it, so both build (and share)
-    the same cached scene — a plain dataset's ``dataset_splat_stage()`` (600 steps, 30k Gaussians, the short
+    the same cached scene — a plain dataset's ``dataset_splat_stage()`` (550 steps, 30k Gaussians, the short
     schedule), a session's ``SplatStageConfig()`` (1500 steps, 25k Gaussians)."""
     # lazy, start-up: cv2, scipy
     from umi_aug.augment.config import SplatStageConfig, dataset_splat_stage
