@@ -5,7 +5,7 @@ whose wall time is compared across sittings or sessions.
     python benchmarks/machine_probe.py --rounds 3 # the median of 3
 
 This machine's speed drifts by hours with nothing else running on it (``docs/real_scale.md`` 1k-1m: the same code's
-``umi-aug augment`` took 55 s in one sitting and 94 s in another). Timings taken in different sittings compare only
+``umi-aug augment -n 2`` took 59-61 s in one sitting and 86-94 s in another). Timings taken in different sittings compare only
 when the probe read the same in both; within one sitting, compare interleaved runs. The parts:
 
 * ``numba 1 thread`` / ``numba 2 threads``: a float64 loop (square root, exponential) over 4,096 lanes x 60,000
