@@ -188,7 +188,7 @@ class AugConfig:
     cone_half_angle_deg: float = 50.0
     cone_radius_m: float = 0.15
     #: 3DGS training of the scene (steps, Gaussian budget); None = umi-aug's default for the input, as
-    #: ``umi-aug augment`` trains it (a session: 1500 / 25000; a plain dataset: 600 / 30000 with the short schedule
+    #: ``umi-aug augment`` trains it (a session: 1500 / 25000; a plain dataset: 550 / 30000 with the short schedule
     #: of ``umi_aug/augment/splat_defaults.py``)
     splat_iterations: Optional[int] = None
     splat_max_gaussians: Optional[int] = None

@@ -320,7 +320,7 @@ class UmiAugDataset(_dataset_base()):
         aug_seed: root seed of the augmented episodes and slot draws.
         splat_iterations / splat_max_gaussians: 3DGS training of the scene; both None = what the stage cache in
             ``work_dir`` was trained with (every setting), else umi-aug's default for the input, as ``umi-aug
-            augment`` trains it (a session: 1500 / 25000; a plain dataset: 600 / 30000 with the short schedule).
+            augment`` trains it (a session: 1500 / 25000; a plain dataset: 550 / 30000 with the short schedule).
         cone_half_angle_deg / cone_radius_m: start-pose cone (paper: 50°, 0.15 m).
         plan_cache_size: planned episodes kept per DataLoader worker.
         tcp_offset_m / scene_group: plain-dataset input (UMI's camera→TCP offset in metres; episodes per scene,
