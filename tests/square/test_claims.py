@@ -9,24 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.square.records import committed_recipe_and_page_section, cpu_recipe, write_success_record
 from umi_aug.square import study as st
 from umi_aug.square.claims import PAPER_CLAIMS, VERDICTS, PaperClaim, claim_result, claims_section, verdict
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 def _cfg(tmp_path: Path, *over: str) -> st.StudyConfig:
-    return st.load_recipe(ROOT / "configs" / "square_study" / "cpu.yaml",
-                          [f"out_dir={tmp_path / 'out'}", "record_dir=''", f"report_md={tmp_path / 'r.md'}",
-                           f"report_png={tmp_path / 'r.png'}", "sweep_thetas=[]", *over])
+    return cpu_recipe(tmp_path, "sweep_thetas=[]", *over)
 
 
-def _write(cfg, name: str, success: np.ndarray, configs=None) -> None:
-    d = st.record_eval_dir(cfg, {"name": name})
-    d.mkdir(parents=True)
-    configs = range(len(success)) if configs is None else configs
-    (d / "results.jsonl").write_text("".join(json.dumps({"config": int(c), "success": bool(s)}) + "\n"
-                                             for c, s in zip(configs, success)))
+_write = write_success_record
 
 
 @pytest.mark.parametrize("paper, lo, hi, expected", [
@@ -136,12 +128,7 @@ def test_the_summary_page_states_what_the_record_says(recipe):
     """docs/square_study.md is written by hand: in each recipe's section, each claim's row must carry the number and
     the verdict that the committed record of that study gives today (regenerate the row when a cell lands). A
     running study's section lists every claim it has measured (at least one); a finished one lists all seven."""
-    cfg = st.load_recipe(ROOT / "configs" / "square_study" / f"{recipe}.yaml",
-                         [f"record_dir={ROOT / 'docs' / f'square_study_{recipe}'}"])
-    page = (ROOT / "docs" / "square_study.md").read_text().replace("−", "-").splitlines()
-    start = next(i for i, line in enumerate(page) if line.startswith(f"## Recipe `{recipe}`"))
-    end = next((i for i in range(start + 1, len(page)) if page[i].startswith("## ")), len(page))
-    section = page[start:end]
+    cfg, section = committed_recipe_and_page_section(recipe)
     n_rows = 0
     for c in PAPER_CLAIMS:
         r = claim_result(cfg, c)

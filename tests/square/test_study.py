@@ -338,7 +338,9 @@ def test_report_marks_unevaluated_cells_and_counts_what_was_recorded(tmp_path, r
     rep = write_report(cfg, cells, {"steps": {"train/none_n10": {"seconds": 120.0, "done": True}}})
     md = Path(cfg.report_md).read_text()
     assert f"| none | 10 | {n} | {100 * k / n:.1f} [" in md
-    assert md.count("not evaluated yet") == 3 + 1  # none_n25, ours_n10, ours_n25; sweep θ = 50 (ours_n10)
+    # none_n25, ours_n10, ours_n25; sweep θ = 50 (ours_n10) in the sweep's table and in its claim's sentence
+    assert md.count("not evaluated yet") == 3 + 1 + 1
+    assert "40°: " in md and "50°: not evaluated yet" in md
     assert "| 40 | 5 |" in md and "| train/none_n10 | 2.0 |" in md
     assert "†" not in md  # no step ran elsewhere
     # an evaluation made on a lent machine: its minutes there, marked, with a note naming the machine

@@ -24,7 +24,8 @@ from umi_aug.eval.results import ResultsLog
 from umi_aug.eval.stats import paired_bootstrap_interval
 from umi_aug.square.study import record_eval_dir
 
-__all__ = ["PaperClaim", "PAPER_CLAIMS", "VERDICTS", "verdict", "claim_result", "claims_section"]
+__all__ = ["PaperClaim", "PAPER_CLAIMS", "VERDICTS", "verdict", "claim_result", "claims_section",
+           "success_by_config"]
 
 
 @dataclass(frozen=True)
@@ -97,7 +98,8 @@ def verdict(paper_pp: float, lo_pp: float, hi_pp: float) -> str:
     return "not resolved" if lo <= claim <= hi else "not reproduced"
 
 
-def _success(eval_dir: Path) -> dict[int, bool]:
+def success_by_config(eval_dir: Path) -> dict[int, bool]:
+    """``{configuration: success}`` of an evaluation directory's ``results.jsonl`` (empty when it has none)."""
     p = Path(eval_dir) / "results.jsonl"
     return {c: bool(r.get("success")) for c, r in ResultsLog(p).read().items()} if p.exists() else {}
 
@@ -121,7 +123,7 @@ def claim_result(cfg, claim: PaperClaim, n_boot: int = 10000, seed: int = 0,
                 "cross_machine": False}
     pairs, missing = [], []
     for n in wanted:
-        a, b = (_success(record_eval_dir(cfg, {"name": f"{v}_n{n}"})) for v in (claim.better, claim.worse))
+        a, b = (success_by_config(record_eval_dir(cfg, {"name": f"{v}_n{n}"})) for v in (claim.better, claim.worse))
         missing += [f"{v}_n{n}" for v, rows in ((claim.better, a), (claim.worse, b)) if not rows]
         if a and b:
             pairs.append((n, a, b))

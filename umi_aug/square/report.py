@@ -3,7 +3,8 @@
 
 Everything is read from the study's record (``record_dir``: evaluation ``summary.json`` / ``results.jsonl``, export
 summaries, ``study_state.json`` wall times, rendering fidelity); cells not evaluated yet are listed as such, never
-filled in. The paper's claims and their verdicts: :mod:`umi_aug.square.claims`.
+filled in. The paper's claims and their verdicts: :mod:`umi_aug.square.claims` (its cone-angle claim:
+:mod:`umi_aug.square.sweep_claims`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from umi_aug.square.claims import claims_section
 from umi_aug.square.start_angle import start_angle_section
 from umi_aug.square.study import (StudyError, eval_command, export_path, handover_configs, load_state,
                                   record_eval_dir, record_export_summary, study_cells, train_command, variant_path)
+from umi_aug.square.sweep_claims import sweep_claims_section
 
 __all__ = ["cell_metrics", "paired_vs", "paired_outcomes", "fidelity", "report_study", "write_report",
            "write_frames_sheet", "frames_sheet_panels", "frames_sheet_path"]
@@ -291,9 +293,12 @@ def write_report(cfg, cells: list[dict[str, Any]], state: dict[str, Any]) -> dic
     claims_lines, claims = claims_section(cfg, machine=lambda step: _machine(lent, step))
     report["claims"] = [{**asdict(r["claim"]), **{k: _finite_or_none(v) for k, v in r.items() if k != "claim"}}
                         for r in claims]
+    sweep_lines, sweep_claims = sweep_claims_section(cfg)
+    report["sweep_claims"] = [{**asdict(r["claim"]), **{k: _finite_or_none(v) for k, v in r.items() if k != "claim"}}
+                              for r in sweep_claims]
     atomic_write_text(cfg.record / "report.json", json.dumps(report, indent=1) + "\n")
     _write_md(cfg, cells, metrics, fid, report["exports"], state, report["frames_sheet"], handover, lent,
-              claims_lines)
+              claims_lines + sweep_lines)
     _write_png(cfg, cells, metrics, handover)
     return report
 
