@@ -16,10 +16,7 @@ from umi_aug.square.sweep_claims import (PAPER_SWEEP_CLAIMS, SWEEP_VERDICTS, Swe
                                          sweep_claim_result, sweep_claims_section, sweep_verdict)
 
 
-def _cfg(tmp_path: Path, *over: str) -> st.StudyConfig:
-    return cpu_recipe(tmp_path, *over)
-
-
+_cfg = cpu_recipe
 _write = write_success_record
 
 
